@@ -1,0 +1,97 @@
+"""Plugin discovery through entry points, and the interfaces plugins implement.
+
+Built-in plugins (``bopsurg.generators``, ``bopsurg.models``) register under the same
+entry-point groups as third-party ones, so there is one discovery path. A third party adds a
+plugin from its own distribution::
+
+    [project.entry-points."bopsurg.renderers"]
+    myrenderer = "mypkg.render:MyDepthRenderer"
+
+The core only ever reaches a plugin through :func:`load_plugin`, never by import.
+"""
+
+from __future__ import annotations
+
+import logging
+from importlib.metadata import EntryPoint, entry_points
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+from bopsurg.errors import BopsurgError
+
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
+    from bopsurg.bop.models import ObjectModel
+
+log = logging.getLogger(__name__)
+
+#: Entry-point groups, by plugin kind.
+GROUPS: dict[str, str] = {
+    "renderer": "bopsurg.renderers",
+    "generator": "bopsurg.generators",
+    "estimator": "bopsurg.estimators",
+}
+
+
+@runtime_checkable
+class DepthRenderer(Protocol):
+    """Renders the depth of one object model; what VSD and visibility computation need.
+
+    Implementations must be headless and return z-depth (not distance) in mm, 0 where the
+    object is absent, for a pinhole camera with matrix ``K`` and the pose convention of BOP
+    (``x_cam = R x + t``, mm).
+    """
+
+    def render_depth(
+        self,
+        model: ObjectModel,
+        R: NDArray[np.float64],
+        t: NDArray[np.float64],
+        K: NDArray[np.float64],
+        width: int,
+        height: int,
+    ) -> NDArray[np.float64]:
+        """Render (height, width) depth in mm of ``model`` at pose (R (3, 3), t (3,) mm)."""
+        ...
+
+
+def available_plugins(kind: str) -> dict[str, EntryPoint]:
+    """Installed plugins of one kind, by name.
+
+    Args:
+        kind: One of :data:`GROUPS` (``"renderer"``, ``"generator"``, ``"estimator"``).
+    """
+    if kind not in GROUPS:
+        raise BopsurgError(f"unknown plugin kind {kind!r}; expected one of {sorted(GROUPS)}")
+    return {ep.name: ep for ep in entry_points(group=GROUPS[kind])}
+
+
+def load_plugin(kind: str, name: str | None = None) -> Any:
+    """Load a plugin object (class or factory) by kind and name.
+
+    Args:
+        kind: Plugin kind (see :data:`GROUPS`).
+        name: Entry-point name; ``None`` takes the first installed one in name order.
+
+    Returns:
+        The loaded object.
+
+    Raises:
+        BopsurgError: No such plugin is installed, or it fails to import (e.g. its optional
+            dependencies are missing); the message says which extra to install.
+    """
+    plugins = available_plugins(kind)
+    if not plugins:
+        raise BopsurgError(
+            f"no {kind} plugin is installed (group {GROUPS[kind]!r}); "
+            "install bopsurg[sim] for the built-in PyBullet one"
+        )
+    if name is None:
+        name = sorted(plugins)[0]
+    if name not in plugins:
+        raise BopsurgError(f"no {kind} plugin named {name!r}; installed: {sorted(plugins)}")
+    try:
+        return plugins[name].load()
+    except ImportError as err:
+        raise BopsurgError(f"{kind} plugin {name!r} cannot be imported: {err}") from err
