@@ -1,0 +1,117 @@
+"""BOP datasets and results, read and written exactly as the BOP toolkit (``bop_toolkit_lib``)
+does, with plain one-line messages (``file:line: field: reason``) for anything malformed.
+
+Dataset layout (BOP-scenewise)::
+
+    DATASET/
+      camera.json                      # optional: fx, fy, cx, cy, width, height, depth_scale
+      test_targets_bop19.json          # evaluation targets: [{im_id, inst_count, obj_id, scene_id}]
+      models[_eval]/                   # models_eval/ (evaluation models) is preferred
+        models_info.json               # {obj_id: {diameter, min_x.., size_x.., symmetries_*}}
+        obj_{obj_id:06d}.ply           # mesh, vertices in mm
+      {split}[_{split_type}]/          # test/, train_pbr/ ...
+        {scene_id:06d}/
+          scene_camera.json            # {im_id: {cam_K [9], depth_scale, cam_R_w2c?, cam_t_w2c?}}
+          scene_gt.json                # {im_id: [{obj_id, cam_R_m2c [9], cam_t_m2c [3] mm}]}
+          scene_gt_info.json           # {im_id: [{bbox_obj, bbox_visib, px_count_*, visib_fract}]}
+          rgb/{im_id:06d}.png|.jpg     # gray/ for gray-scale datasets
+          depth/{im_id:06d}.png        # uint16, mm = value × depth_scale
+          mask/{im_id:06d}_{gt_id:06d}.png        # silhouette inside the image, 255 = object
+          mask_visib/{im_id:06d}_{gt_id:06d}.png  # visible part
+
+Conventions: poses map model to camera, ``x_cam = R @ x_model + t``, ``R`` written as 9 floats
+row-major, ``t`` and model vertices in mm; the ``gt_id`` of an instance is its index in the
+image's ``scene_gt.json`` list. JSON files use integer ids as string keys and the reference's
+one-entry-per-line layout (:func:`save_json`).
+
+Pose results are the BOP19 CSV ``scene_id,im_id,obj_id,score,R,t,time`` (:mod:`.results`).
+
+Modules: :mod:`.jsonio` (JSON), :mod:`.scene` (scene_camera / scene_gt / scene_gt_info),
+:mod:`.images` (rgb, depth, masks), :mod:`.models` (PLY, models_info), :mod:`.results` (CSV),
+:mod:`.targets`, :mod:`.dataset` (lazy :class:`BopDataset`), :mod:`.check`
+(:func:`check_dataset`).
+"""
+
+from __future__ import annotations
+
+from bopsurg.bop.check import Problem, check_dataset
+from bopsurg.bop.dataset import BopDataset, BopScene, model_path, scene_dir
+from bopsurg.bop.images import (
+    image_size,
+    load_depth,
+    load_mask,
+    load_rgb,
+    save_depth,
+    save_mask,
+    save_rgb,
+)
+from bopsurg.bop.jsonio import load_json, save_json
+from bopsurg.bop.models import (
+    ObjectModel,
+    compute_model_info,
+    load_models_info,
+    load_ply,
+    save_models_info,
+    save_ply,
+)
+from bopsurg.bop.results import (
+    PoseEstimates,
+    average_time_per_image,
+    check_results_against_dataset,
+    load_results,
+    save_results,
+)
+from bopsurg.bop.scene import (
+    CameraInfo,
+    GtInfo,
+    GtPose,
+    load_scene_camera,
+    load_scene_gt,
+    load_scene_gt_info,
+    save_scene_camera,
+    save_scene_gt,
+    save_scene_gt_info,
+)
+from bopsurg.bop.targets import Target, enumerate_targets, load_targets, save_targets
+
+__all__ = [
+    "BopDataset",
+    "BopScene",
+    "CameraInfo",
+    "GtInfo",
+    "GtPose",
+    "ObjectModel",
+    "PoseEstimates",
+    "Problem",
+    "Target",
+    "average_time_per_image",
+    "check_dataset",
+    "check_results_against_dataset",
+    "compute_model_info",
+    "enumerate_targets",
+    "image_size",
+    "load_depth",
+    "load_json",
+    "load_mask",
+    "load_models_info",
+    "load_ply",
+    "load_results",
+    "load_rgb",
+    "load_scene_camera",
+    "load_scene_gt",
+    "load_scene_gt_info",
+    "load_targets",
+    "model_path",
+    "save_depth",
+    "save_json",
+    "save_mask",
+    "save_models_info",
+    "save_ply",
+    "save_results",
+    "save_rgb",
+    "save_scene_camera",
+    "save_scene_gt",
+    "save_scene_gt_info",
+    "save_targets",
+    "scene_dir",
+]

@@ -1,0 +1,311 @@
+"""Lazy access to a BOP dataset folder: scenes, annotations, images, models and targets.
+
+Nothing is read until asked for, and what is read is cached: a scene's
+``scene_camera.json`` is parsed on first access to :attr:`BopScene.camera`, a model on
+first :meth:`BopDataset.model` call. Images are never cached (the caller decides), only their
+paths are resolved.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from bopsurg.bop.images import image_size as _image_size
+from bopsurg.bop.jsonio import load_json
+from bopsurg.bop.models import ObjectModel, load_models_info, load_ply
+from bopsurg.bop.scene import (
+    CameraInfo,
+    GtInfo,
+    GtPose,
+    load_scene_camera,
+    load_scene_gt,
+    load_scene_gt_info,
+)
+from bopsurg.bop.targets import MIN_VISIB, Target, enumerate_targets, load_targets
+from bopsurg.errors import DatasetError
+
+logger = logging.getLogger(__name__)
+
+#: Suffixes tried, in order, for colour/gray images and depth images.
+RGB_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif")
+DEPTH_SUFFIXES = (".png", ".tif")
+
+
+def scene_dir(root: str | Path, split: str, scene_id: int) -> Path:
+    """The folder of a scene: ``root/split/{scene_id:06d}`` (``split`` may carry a type,
+    e.g. ``"train_pbr"``)."""
+    return Path(root) / split / f"{int(scene_id):06d}"
+
+
+def model_path(models_dir: str | Path, obj_id: int) -> Path:
+    """The model file of an object: ``models_dir/obj_{obj_id:06d}.ply``."""
+    return Path(models_dir) / f"obj_{int(obj_id):06d}.ply"
+
+
+def _is_scene_name(name: str) -> bool:
+    return name.isascii() and name.isdigit() and f"{int(name):06d}" == name
+
+
+def list_scene_ids(split_dir: str | Path) -> list[int]:
+    """Sorted ids of the scene folders (6-digit names) of a split folder."""
+    d = Path(split_dir)
+    return sorted(int(p.name) for p in d.iterdir() if p.is_dir() and _is_scene_name(p.name))
+
+
+class BopScene:
+    """One scene of a split; annotation files are loaded on first access and cached.
+
+    Args:
+        scene_id: The scene id.
+        scene_dir: Its folder.
+    """
+
+    def __init__(self, scene_id: int, scene_dir: Path) -> None:
+        self.scene_id = int(scene_id)
+        self.scene_dir = Path(scene_dir)
+
+    def __repr__(self) -> str:
+        return f"BopScene({self.scene_id}, {str(self.scene_dir)!r})"
+
+    @functools.cached_property
+    def camera(self) -> dict[int, CameraInfo]:
+        """Image id → camera (``scene_camera.json``)."""
+        return load_scene_camera(self.scene_dir / "scene_camera.json")
+
+    @functools.cached_property
+    def gt(self) -> dict[int, list[GtPose]]:
+        """Image id → GT instances in gt_id order (``scene_gt.json``)."""
+        return load_scene_gt(self.scene_dir / "scene_gt.json")
+
+    @functools.cached_property
+    def gt_info(self) -> dict[int, list[GtInfo]] | None:
+        """Image id → GT meta information (``scene_gt_info.json``), None if the file is absent."""
+        path = self.scene_dir / "scene_gt_info.json"
+        if not path.exists():
+            return None
+        return load_scene_gt_info(path)
+
+    @property
+    def im_ids(self) -> list[int]:
+        """Sorted image ids: those of ``scene_camera.json`` (every image has a camera entry),
+        or of ``scene_gt.json`` when the scene has no camera file."""
+        if (self.scene_dir / "scene_camera.json").exists() or "camera" in self.__dict__:
+            return sorted(self.camera)
+        return sorted(self.gt)
+
+    def _find(self, folders: tuple[str, ...], stem: str, suffixes: tuple[str, ...]) -> Path:
+        for folder in folders:
+            for suffix in suffixes:
+                path = self.scene_dir / folder / f"{stem}{suffix}"
+                if path.exists():
+                    return path
+        return self.scene_dir / folders[0] / f"{stem}{suffixes[0]}"
+
+    def rgb_path(self, im_id: int) -> Path:
+        """The colour image of ``im_id``: ``rgb/{im_id:06d}`` with suffix .png, .jpg, .jpeg or
+        .tif, whichever exists, else the same in ``gray/``; ``rgb/{im_id:06d}.png`` if none
+        exists."""
+        return self._find(("rgb", "gray"), f"{int(im_id):06d}", RGB_SUFFIXES)
+
+    def depth_path(self, im_id: int) -> Path:
+        """The depth image of ``im_id``: ``depth/{im_id:06d}.png`` (or .tif if that exists)."""
+        return self._find(("depth",), f"{int(im_id):06d}", DEPTH_SUFFIXES)
+
+    def mask_path(self, im_id: int, gt_id: int) -> Path:
+        """The full-silhouette mask ``mask/{im_id:06d}_{gt_id:06d}.png``."""
+        return self.scene_dir / "mask" / f"{int(im_id):06d}_{int(gt_id):06d}.png"
+
+    def mask_visib_path(self, im_id: int, gt_id: int) -> Path:
+        """The visible-part mask ``mask_visib/{im_id:06d}_{gt_id:06d}.png``."""
+        return self.scene_dir / "mask_visib" / f"{int(im_id):06d}_{int(gt_id):06d}.png"
+
+
+class BopDataset:
+    """A BOP dataset folder, read lazily.
+
+    Args:
+        root: The dataset folder (holding ``models*/`` and the split folders).
+        split: ``"test"``, ``"train"``, ``"val"`` ...
+        split_type: Optional split type; the split folder is ``root/{split}_{split_type}``
+            (e.g. ``train_pbr``).
+        model_type: Optional model type; models are then read from ``models_{model_type}``.
+            Otherwise ``models_eval/`` (the evaluation models the reference uses) if it
+            exists, else ``models/``.
+
+    Raises:
+        DatasetError: ``root`` or the split folder does not exist. A missing models folder is
+            reported when models are first needed.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        split: str = "test",
+        *,
+        split_type: str | None = None,
+        model_type: str | None = None,
+    ) -> None:
+        self.root = Path(root)
+        self.split = split
+        self.split_type = split_type
+        self.model_type = model_type
+        if not self.root.is_dir():
+            raise DatasetError("dataset folder not found", path=self.root)
+        name = split if split_type is None else f"{split}_{split_type}"
+        self.split_dir = self.root / name
+        if not self.split_dir.is_dir():
+            splits = sorted(p.name for p in self.root.iterdir() if p.is_dir())
+            raise DatasetError(
+                f"split folder not found (folders here: {', '.join(splits) or 'none'})",
+                path=self.split_dir,
+            )
+        self._scenes: dict[int, BopScene] = {}
+        self._models: dict[int, ObjectModel] = {}
+        self._image_sizes: dict[int, tuple[int, int]] = {}
+
+    def __repr__(self) -> str:
+        return f"BopDataset({str(self.root)!r}, split={self.split_dir.name!r})"
+
+    @functools.cached_property
+    def models_dir(self) -> Path:
+        """The models folder (see the class docs for how it is chosen)."""
+        if self.model_type is not None:
+            candidates = [f"models_{self.model_type}"]
+        else:
+            candidates = ["models_eval", "models"]
+        for name in candidates:
+            if (self.root / name).is_dir():
+                return self.root / name
+        raise DatasetError(
+            f"models folder not found (looked for {' or '.join(candidates)})",
+            path=self.root / candidates[-1],
+        )
+
+    @functools.cached_property
+    def scene_ids(self) -> list[int]:
+        """Sorted ids of the scene folders of the split."""
+        return list_scene_ids(self.split_dir)
+
+    def scene(self, scene_id: int) -> BopScene:
+        """The scene ``scene_id`` (cached).
+
+        Raises:
+            DatasetError: No such scene folder.
+        """
+        sid = int(scene_id)
+        if sid not in self._scenes:
+            d = scene_dir(self.root, self.split_dir.name, sid)
+            if not d.is_dir():
+                raise DatasetError(f"no scene {sid} in this split", path=d)
+            self._scenes[sid] = BopScene(sid, d)
+        return self._scenes[sid]
+
+    def iter_scenes(self) -> Iterator[BopScene]:
+        """The scenes in id order."""
+        for sid in self.scene_ids:
+            yield self.scene(sid)
+
+    @functools.cached_property
+    def models_info(self) -> dict[int, dict[str, Any]]:
+        """obj_id → ``models_info.json`` entry of the models folder."""
+        return load_models_info(self.models_dir / "models_info.json")
+
+    @property
+    def obj_ids(self) -> list[int]:
+        """Sorted object ids of ``models_info.json``."""
+        return sorted(self.models_info)
+
+    def model_path(self, obj_id: int) -> Path:
+        """``models_dir/obj_{obj_id:06d}.ply``."""
+        return model_path(self.models_dir, obj_id)
+
+    def model(self, obj_id: int) -> ObjectModel:
+        """The model of ``obj_id`` (loaded once, then cached).
+
+        Raises:
+            DatasetError: No model file for ``obj_id``.
+            ModelError: The file is malformed.
+        """
+        oid = int(obj_id)
+        if oid not in self._models:
+            path = self.model_path(oid)
+            if not path.is_file():
+                raise DatasetError(
+                    f"unknown obj_id {oid}: no {path.name} in the models folder",
+                    path=self.models_dir,
+                )
+            self._models[oid] = load_ply(path)
+        return self._models[oid]
+
+    def targets(self, filename: str = "test_targets_bop19.json") -> list[Target]:
+        """The evaluation targets of ``root/filename``.
+
+        If the file does not exist they are enumerated from the GT and GT info of all scenes
+        (``visib_fract >= 0.1``, as the reference script does) and a warning is logged.
+
+        Raises:
+            DatasetError: Malformed targets file, or (when enumerating) missing GT files.
+        """
+        path = self.root / filename
+        if path.exists():
+            return load_targets(path)
+        logger.warning(
+            "%s not found: enumerating targets from the GT (visib_fract >= %s)", path, MIN_VISIB
+        )
+        gts, infos = {}, {}
+        for scene in self.iter_scenes():
+            info = scene.gt_info
+            if info is None:
+                raise DatasetError(
+                    "scene_gt_info.json is missing, needed to enumerate the targets",
+                    path=scene.scene_dir / "scene_gt_info.json",
+                )
+            gts[scene.scene_id] = scene.gt
+            infos[scene.scene_id] = info
+        return enumerate_targets(gts, infos, MIN_VISIB)
+
+    @functools.cached_property
+    def camera_json(self) -> dict[str, Any] | None:
+        """The content of ``root/camera.json`` (``fx, fy, cx, cy, width, height,
+        depth_scale``), or None if absent."""
+        path = self.root / "camera.json"
+        if not path.exists():
+            return None
+        content = load_json(path)
+        if not isinstance(content, dict):
+            raise DatasetError("expected a JSON object", path=path)
+        return content
+
+    def image_size(self, scene_id: int | None = None) -> tuple[int, int]:
+        """Image size (width, height) in px.
+
+        From ``camera.json`` if it has ``width`` and ``height``, else from the first image of
+        ``scene_id`` (default: the first scene).
+
+        Raises:
+            DatasetError: No camera.json size and no image to measure.
+        """
+        cam = self.camera_json
+        if cam is not None and "width" in cam and "height" in cam:
+            try:
+                return int(cam["width"]), int(cam["height"])
+            except (TypeError, ValueError):
+                raise DatasetError(
+                    "width and height must be integers", path=self.root / "camera.json"
+                ) from None
+        if scene_id is None:
+            if not self.scene_ids:
+                raise DatasetError("no scene folders in this split", path=self.split_dir)
+            scene_id = self.scene_ids[0]
+        sid = int(scene_id)
+        if sid not in self._image_sizes:
+            scene = self.scene(sid)
+            im_ids = scene.im_ids
+            if not im_ids:
+                raise DatasetError("scene has no images", path=scene.scene_dir)
+            self._image_sizes[sid] = _image_size(scene.rgb_path(im_ids[0]))
+        return self._image_sizes[sid]
