@@ -1,0 +1,110 @@
+"""The torch path equals the numpy path; CUDA tests run only where a GPU is present."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bopsurg.errors import ShapeError
+from bopsurg.metrics import add, mspd, mssd, re, symmetry_transforms, te
+from bopsurg.metrics.reference import mspd_ref
+
+from ._data import CONT_Z, K_CAM, arc_model, assert_close, box_model, pose_pairs
+
+torch = pytest.importorskip("torch")
+tb = pytest.importorskip("bopsurg.metrics.torch_backend")
+
+pytestmark = pytest.mark.torch
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+
+INFO = {
+    "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}],
+    "symmetries_discrete": [np.diag([1.0, -1.0, -1.0, 1.0]).reshape(-1).tolist()],
+}
+
+
+def _data(seed: int = 0, n: int = 12):  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(seed)
+    pts = arc_model(rng, 300) if seed % 2 else box_model(rng, 300)
+    return pose_pairs(rng, n, deg=10.0), pts, symmetry_transforms(INFO, 0.1)
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().numpy()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_cpu_torch_equals_numpy(seed: int) -> None:
+    pairs, pts, syms = _data(seed)
+    R_est, t_est, R_gt, t_gt = pairs
+    assert_close(_np(tb.mssd_torch(*pairs, pts, syms, device="cpu")), mssd(*pairs, pts, syms))
+    assert_close(
+        _np(tb.mspd_torch(*pairs, K_CAM, pts, syms, device="cpu")), mspd(*pairs, K_CAM, pts, syms)
+    )
+    assert_close(_np(tb.add_torch(*pairs, pts, device="cpu")), add(*pairs, pts))
+    assert_close(_np(tb.re_torch(R_est, R_gt, device="cpu")), re(R_est, R_gt))
+    assert_close(_np(tb.te_torch(t_est, t_gt, device="cpu")), te(t_est, t_gt))
+
+
+def test_torch_inputs_float64_default_and_float32_option() -> None:
+    pairs, pts, syms = _data(2)
+    tens = [torch.as_tensor(a) for a in pairs]
+    out = tb.mssd_torch(*tens, torch.as_tensor(pts), syms, device="cpu")
+    assert out.dtype == torch.float64
+    assert out.shape == (12,)
+    assert_close(_np(out), mssd(*pairs, pts, syms))
+    f32 = tb.mspd_torch(*tens, K_CAM, pts, syms, device="cpu", dtype=torch.float32)
+    assert f32.dtype == torch.float32
+    np.testing.assert_allclose(_np(f32), mspd(*pairs, K_CAM, pts, syms), rtol=1e-3, atol=1e-3)
+
+
+def test_small_chunks_and_broadcasting(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tb, "CPU_BUDGET", 5000)  # forces many pose and symmetry chunks
+    (R_est, t_est, R_gt, t_gt), pts, syms = _data(3)
+    got = tb.mssd_torch(R_est, t_est, R_gt[0], t_gt[0], pts, syms, device="cpu")
+    assert_close(_np(got), mssd(R_est, t_est, R_gt[0], t_gt[0], pts, syms))
+    got = tb.mspd_torch(R_est, t_est, R_gt[0], t_gt[0], K_CAM, pts, syms, device="cpu")
+    assert_close(_np(got), mspd(R_est, t_est, R_gt[0], t_gt[0], K_CAM, pts, syms))
+
+
+def test_nan_rule_matches_numpy_and_reference() -> None:
+    pts = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [0.0, 30.0, 5.0], [-20.0, 5.0, -5.0]])
+    syms = symmetry_transforms(CONT_Z, 0.5)
+    args = (np.eye(3), np.array([1.0, 2.0, 0.0]), np.eye(3), np.zeros(3), K_CAM, pts)
+    got = tb.mspd_torch(*args, syms, device="cpu")
+    assert np.isnan(_np(got)[0])
+    assert np.isnan(mspd_ref(*args, syms))
+
+
+def test_bad_input_names_the_field() -> None:
+    pairs, pts, _ = _data(0)
+    with pytest.raises(ShapeError) as exc:
+        tb.mssd_torch(pairs[0][:, :2], *pairs[1:], pts, device="cpu")
+    assert exc.value.field == "R_est"
+    with pytest.raises(ShapeError) as exc:
+        tb.add_torch(*pairs, pts * np.nan, device="cpu")
+    assert exc.value.field == "pts"
+    with pytest.raises(ShapeError) as exc:
+        tb.mspd_torch(*pairs, np.eye(4), pts, device="cpu")
+    assert exc.value.field == "K"
+
+
+def test_importing_metrics_does_not_import_torch() -> None:
+    code = "import sys, bopsurg.metrics; assert 'torch' not in sys.modules, 'torch imported'"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@cuda
+def test_cuda_equals_numpy() -> None:
+    pairs, pts, syms = _data(4, n=64)
+    got = tb.mssd_torch(*pairs, pts, syms, device="cuda")
+    assert got.device.type == "cuda"
+    assert_close(_np(got), mssd(*pairs, pts, syms))
+    assert_close(
+        _np(tb.mspd_torch(*pairs, K_CAM, pts, syms, device="cuda")), mspd(*pairs, K_CAM, pts, syms)
+    )
+    assert_close(_np(tb.add_torch(*pairs, pts, device="cuda")), add(*pairs, pts))
+    assert tb.resolve_device("auto").type == "cuda"
