@@ -1,0 +1,104 @@
+"""The `bopsurg` command: exit codes, one-line errors, outputs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bopsurg.cli.main import main
+from bopsurg.example import ExampleSpec, write_example_dataset
+
+
+@pytest.fixture(scope="module")
+def example(tmp_path_factory):
+    return write_example_dataset(
+        tmp_path_factory.mktemp("cli"), ExampleSpec(seed=1, scenes=1, images_per_scene=6)
+    )
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bopsurg: error: ")
+    assert "\n" not in err
+    assert "Traceback" not in err
+    return err
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.startswith("bopsurg ")
+
+
+def test_help_teaches(capsys):
+    with pytest.raises(SystemExit):
+        main(["eval", "--help"])
+    out = capsys.readouterr().out
+    assert "errors.csv" in out
+    assert "--min-visib" in out
+    assert "bop19_average_recall" in out
+
+
+def test_eval_writes_outputs(example, tmp_path, capsys):
+    assert main(["eval", str(example.root), str(example.results), "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "MSSD [mm]" in out
+    assert "bop19_average_recall_mssd" in out
+    assert (tmp_path / "errors.csv").exists()
+    assert "bop19_average_recall_mspd" in json.loads((tmp_path / "scores.json").read_text())
+
+
+def test_eval_bad_results_is_one_line_exit_2(example, tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    lines = example.results.read_text().splitlines()
+    fields = lines[2].split(",")
+    fields[3] = "nan"
+    lines[2] = ",".join(fields)
+    bad.write_text("\n".join(lines))
+    assert main(["eval", str(example.root), str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = _one_line_error(capsys)
+    assert "bad.csv:3" in err
+    assert "score" in err
+
+
+def test_eval_unknown_image_is_one_line_exit_2(example, tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    lines = example.results.read_text().splitlines()
+    fields = lines[1].split(",")
+    fields[1] = "999"
+    lines[1] = ",".join(fields)
+    bad.write_text("\n".join(lines))
+    assert main(["eval", str(example.root), str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = _one_line_error(capsys)
+    assert "bad.csv:2" in err
+
+
+def test_eval_missing_dataset_is_one_line_exit_2(tmp_path, capsys):
+    code = main(["eval", str(tmp_path / "nope"), str(tmp_path / "r.csv"), "--out", str(tmp_path)])
+    assert code == 2
+    _one_line_error(capsys)
+
+
+def test_check_ok_and_problems(example, capsys):
+    assert main(["check", str(example.root)]) == 0
+    assert "OK" in capsys.readouterr().out
+    gt = example.root / "test" / "000001" / "scene_gt.json"
+    original = gt.read_text()
+    try:
+        gt.write_text(original.replace('"obj_id": 1', '"obj_id": 7', 1))
+        assert main(["check", str(example.root)]) == 1
+        out = capsys.readouterr().out
+        assert "scene_gt.json" in out
+        assert "obj_id" in out
+    finally:
+        gt.write_text(original)
+
+
+def test_demo_runs(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--scenes", "1", "--images", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "[3/3] bopsurg eval" in out
+    assert "RE [deg]" in out
+    assert (tmp_path / "eval" / "summary.json").exists()
