@@ -363,6 +363,17 @@ def evaluate(
     return Evaluation(errors, gt_rows, summary, scores, curves)
 
 
+def _json_safe(value: object) -> object:
+    """NaN/inf become null, so the files are standard JSON that every parser reads."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
 def write_evaluation(result: Evaluation, out_dir: str | Path, *, meta: dict | None = None) -> None:
     """Write ``errors.csv``, ``summary.json`` and ``scores.json`` into ``out_dir`` atomically."""
     out = Path(out_dir)
@@ -370,7 +381,8 @@ def write_evaluation(result: Evaluation, out_dir: str | Path, *, meta: dict | No
     with atomic_path(out / "errors.csv") as tmp:
         result.errors.loc[:, list(ERROR_COLUMNS)].to_csv(tmp, index=False, float_format="%.9g")
     summary = {**(meta or {}), **result.summary}
-    write_text(out / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
+    text = json.dumps(_json_safe(summary), indent=2, allow_nan=False)
+    write_text(out / "summary.json", text + "\n")
     details = {
         name: {
             "thresholds": c.thresholds,
@@ -383,4 +395,6 @@ def write_evaluation(result: Evaluation, out_dir: str | Path, *, meta: dict | No
         for name, c in result.curves.items()
     }
     scores = {**result.scores, "details": details}
-    write_text(out / "scores.json", json.dumps(scores, indent=2) + "\n")
+    write_text(
+        out / "scores.json", json.dumps(_json_safe(scores), indent=2, allow_nan=False) + "\n"
+    )

@@ -119,3 +119,16 @@ def test_outputs_are_written(example, tmp_path):
     scores = json.loads((tmp_path / "scores.json").read_text())
     assert len(scores["details"]["mssd"]["recalls"]) == 10
     assert not list(tmp_path.glob(".*tmp*"))  # no temp files left behind
+
+
+def test_outputs_are_standard_json_when_nothing_matches(example, tmp_path):
+    _, ds, est = example
+    far = PoseEstimates.from_arrays(
+        scene_id=est.scene_id[:1], im_id=est.im_id[:1], obj_id=est.obj_id[:1],
+        score=est.score[:1], R=est.R[:1], t=est.t[:1] + 500.0, time=est.time[:1],
+    )  # fmt: skip
+    res = evaluate(ds, far, min_visib=1.1)  # no GT instance passes: statistics are NaN
+    write_evaluation(res, tmp_path)
+    text = (tmp_path / "summary.json").read_text()
+    assert "NaN" not in text
+    assert json.loads(text)["table"]["re"]["mean"] is None
