@@ -31,6 +31,7 @@ GROUPS: dict[str, str] = {
     "renderer": "bopsurg.renderers",
     "generator": "bopsurg.generators",
     "estimator": "bopsurg.estimators",
+    "command": "bopsurg.commands",
 }
 
 
@@ -60,7 +61,8 @@ def available_plugins(kind: str) -> dict[str, EntryPoint]:
     """Installed plugins of one kind, by name.
 
     Args:
-        kind: One of :data:`GROUPS` (``"renderer"``, ``"generator"``, ``"estimator"``).
+        kind: One of :data:`GROUPS` (``"renderer"``, ``"generator"``, ``"estimator"``,
+            ``"command"``: a module with ``register(subparsers)`` adding a CLI subcommand).
     """
     if kind not in GROUPS:
         raise BopsurgError(f"unknown plugin kind {kind!r}; expected one of {sorted(GROUPS)}")

@@ -92,13 +92,14 @@ def _renderer(choice: str, dataset: BopDataset) -> object | None:
         if not has_depth:
             log.info("AR_VSD skipped: the dataset has no depth images")
             return None
-        name = None
-    else:
-        if not has_depth:
-            raise BopsurgError(f"VSD needs depth images; {dataset.split_dir} has no depth/ folders")
-        name = choice
-    factory = load_plugin("renderer", name)
-    return factory()
+        try:
+            return load_plugin("renderer")()
+        except BopsurgError as err:
+            log.warning("AR_VSD skipped: %s", err)
+            return None
+    if not has_depth:
+        raise BopsurgError(f"VSD needs depth images; {dataset.split_dir} has no depth/ folders")
+    return load_plugin("renderer", choice)()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from bopsurg._version import __version__
 from bopsurg.cli import check_cmd, eval_cmd, example_cmd
 from bopsurg.errors import BopsurgError
+from bopsurg.plugins import available_plugins
 
 DESCRIPTION = """\
 bopsurg: BOP metrics, formats and synthetic data for 6D pose of surgical instruments.
@@ -48,7 +49,33 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in (eval_cmd, check_cmd, example_cmd):
         module.register(sub)
+    _register_plugin_commands(sub)
     return parser
+
+
+def _register_plugin_commands(sub: argparse._SubParsersAction) -> None:
+    """Subcommands that plugins (e.g. bopsurg.generators: record, generate) contribute.
+
+    A plugin whose optional dependencies are missing still shows up, with a command that
+    says which extra to install, instead of breaking the whole CLI.
+    """
+    for name, ep in sorted(available_plugins("command").items()):
+        if name in sub.choices:
+            continue
+        try:
+            module = ep.load()
+            module.register(sub)
+        except ImportError as err:
+            missing = str(err)
+            p = sub.add_parser(name, help=f"(unavailable: {missing}; pip install bopsurg[sim])")
+            p.set_defaults(func=_unavailable(name, missing))
+
+
+def _unavailable(name: str, reason: str):
+    def run(args: argparse.Namespace) -> int:
+        raise BopsurgError(f"'{name}' is unavailable ({reason}); install bopsurg[sim]")
+
+    return run
 
 
 class _UserError(SystemExit):

@@ -1,0 +1,231 @@
+"""``bopsurg generate``: bags × replays → a BOP dataset, in parallel worker processes.
+
+The dataset-level files (models, camera.json, the split's ``bopsurg_generate.json`` with the
+seed, settings and bag checksums, and ``test_targets_bop19.json``) are written by the driver;
+each replay writes only its own scene folder (:mod:`bopsurg.generators.replay`), so workers
+never write the same file. Rerunning the same command resumes: finished scenes are skipped,
+an interrupted one continues at its last recorded frame.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import queue
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from bopsurg.generators.replay import (
+    GenerateSettings,
+    ReplayResult,
+    ReplayUnit,
+    file_sha256,
+    frame_times,
+    run_replay,
+)
+from tqdm.auto import tqdm
+
+from bopsurg._version import __version__
+from bopsurg.atomic import write_text
+from bopsurg.bop.jsonio import load_json
+from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
+from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
+from bopsurg.bop.targets import enumerate_targets, save_targets
+from bopsurg.errors import InputError
+from bopsurg.plugins import load_plugin
+
+log = logging.getLogger(__name__)
+
+INFO_NAME = "bopsurg_generate.json"
+
+
+@dataclass
+class GenerateReport:
+    """What a generation run did."""
+
+    scenes: int
+    scenes_skipped: int
+    frames_rendered: int
+    frames_written: int
+
+
+def _read_bag(path: str, topic_map: str) -> object:
+    from bopsurg.generators.bags import read_bag
+
+    return read_bag(path, topic_map=topic_map)
+
+
+def make_backend(settings: GenerateSettings) -> object:
+    """Instantiate and load the backend plugin named in the settings."""
+    backend = load_plugin("generator", settings.backend)()
+    backend.load_scene(dict(settings.backend_config))
+    return backend
+
+
+# -- worker processes ---------------------------------------------------------------------
+_WORKER_BACKEND: object | None = None
+_WORKER_QUEUE: object | None = None
+
+
+def _worker_init(settings: GenerateSettings, progress_queue: object) -> None:
+    global _WORKER_BACKEND, _WORKER_QUEUE
+    _WORKER_BACKEND = make_backend(settings)
+    _WORKER_QUEUE = progress_queue
+
+
+def _worker_run(unit: ReplayUnit) -> ReplayResult:
+    q = _WORKER_QUEUE
+    return run_replay(unit, _WORKER_BACKEND, _read_bag, on_frame=q.put)  # type: ignore[arg-type, union-attr]
+
+
+# -----------------------------------------------------------------------------------------
+def _write_dataset_files(
+    out: Path, split: str, bags: Sequence[str], settings: GenerateSettings
+) -> None:
+    """Models, camera.json and the split's generation record (refusing a mismatch)."""
+    info = {
+        "bopsurg_version": __version__,
+        "split": split,
+        "settings": settings.to_json(),
+        "bags": [{"path": str(Path(b).resolve()), "sha256": file_sha256(b)} for b in bags],
+    }
+    info_path = out / split / INFO_NAME
+    if info_path.exists():
+        old = load_json(info_path)
+        same = old.get("settings") == json.loads(json.dumps(info["settings"])) and [
+            b["sha256"] for b in old.get("bags", [])
+        ] == [b["sha256"] for b in info["bags"]]
+        if not same:
+            raise InputError(
+                "this split was generated with other bags or settings; choose a new --out or "
+                "--split (nothing was changed)",
+                path=info_path,
+            )
+    backend = make_backend(settings)
+    try:
+        infos = {}
+        for name, obj_id in backend.annotated_objects():  # type: ignore[attr-defined]
+            model = backend.object_model(name)  # type: ignore[attr-defined]
+            save_ply(out / "models" / f"obj_{obj_id:06d}.ply", model)
+            infos[obj_id] = compute_model_info(model.pts)
+        save_models_info(out / "models" / "models_info.json", infos)
+    finally:
+        backend.close()  # type: ignore[attr-defined]
+    K = settings.K
+    camera = {
+        "cx": K[0][2],
+        "cy": K[1][2],
+        "depth_scale": settings.depth_scale,
+        "fx": K[0][0],
+        "fy": K[1][1],
+        "height": settings.height,
+        "width": settings.width,
+    }
+    write_text(out / "camera.json", json.dumps(camera, indent=2, sort_keys=True) + "\n")
+    write_text(info_path, json.dumps(info, indent=2, sort_keys=True) + "\n")
+
+
+def _write_targets(out: Path, split: str, scene_ids: Sequence[int]) -> None:
+    gts, infos = {}, {}
+    for s in scene_ids:
+        d = out / split / f"{s:06d}"
+        gts[s] = load_scene_gt(d / "scene_gt.json")
+        infos[s] = load_scene_gt_info(d / "scene_gt_info.json")
+    save_targets(out / "test_targets_bop19.json", enumerate_targets(gts, infos))
+
+
+def generate_dataset(
+    bags: Sequence[str | Path],
+    out: str | Path,
+    *,
+    split: str = "test",
+    settings: GenerateSettings | None = None,
+    workers: int = 1,
+    progress: bool = True,
+) -> GenerateReport:
+    """Replay every bag ``settings.replays`` times into the BOP dataset at ``out``.
+
+    Args:
+        bags: Recordings (ROS1 ``.bag`` files or ROS2 folders), in scene-id order.
+        out: Dataset root (created).
+        split: Split folder name, e.g. ``test`` or ``train``.
+        settings: Generation settings (seed, replays, period, ...).
+        workers: Worker processes (1 = in this process).
+        progress: Show a progress bar (frames done and rate).
+
+    Returns:
+        Counts of what was done.
+    """
+    settings = settings or GenerateSettings()
+    if settings.replays < 1:
+        raise InputError("must be >= 1", field="replays")
+    if workers < 1:
+        raise InputError("must be >= 1", field="workers")
+    bag_paths = [str(b) for b in bags]
+    if not bag_paths:
+        raise InputError("no bag given")
+    for b in bag_paths:
+        if not Path(b).exists():
+            raise InputError("file not found", path=b)
+    # Read every bag once here: bad bags fail before any work starts, and totals are known.
+    frames_per_bag = []
+    for b in bag_paths:
+        rec = _read_bag(b, settings.topic_map)
+        frames_per_bag.append(len(frame_times(rec.start, rec.end, settings.period)))  # type: ignore[attr-defined]
+    total = sum(frames_per_bag) * settings.replays
+    out = Path(out)
+    _write_dataset_files(out, split, bag_paths, settings)
+    units = [
+        ReplayUnit(b, i, r, str(out), split, settings)
+        for i, b in enumerate(bag_paths)
+        for r in range(settings.replays)
+    ]
+    results: list[ReplayResult] = []
+    bar = tqdm(total=total, unit="frame", desc="generate", disable=not progress, smoothing=0.1)
+    try:
+        if workers == 1:
+            backend = make_backend(settings)
+            try:
+                for unit in units:
+                    res = run_replay(unit, backend, _read_bag, on_frame=bar.update)  # type: ignore[arg-type]
+                    # frames a resumed run did not need to render
+                    bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
+                    results.append(res)
+            finally:
+                backend.close()  # type: ignore[attr-defined]
+        else:
+            results = _run_pool(units, settings, workers, bar)
+            for unit, res in zip(units, results, strict=True):
+                bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
+    finally:
+        bar.close()
+    scene_ids = [u.scene_id for u in units]
+    _write_targets(out, split, scene_ids)
+    return GenerateReport(
+        scenes=len(results),
+        scenes_skipped=sum(r.skipped for r in results),
+        frames_rendered=sum(r.frames_rendered for r in results),
+        frames_written=sum(r.frames_written for r in results),
+    )
+
+
+def _run_pool(
+    units: Sequence[ReplayUnit], settings: GenerateSettings, workers: int, bar: tqdm
+) -> list[ReplayResult]:
+    ctx = mp.get_context("spawn")  # fresh interpreters: no inherited renderer state
+    progress_queue = ctx.Queue()
+    results: list[ReplayResult] = []
+    with ctx.Pool(workers, initializer=_worker_init, initargs=(settings, progress_queue)) as pool:
+        pending = pool.map_async(_worker_run, units, chunksize=1)
+        while True:
+            try:
+                bar.update(progress_queue.get(timeout=0.2))
+            except queue.Empty:
+                if pending.ready():
+                    break
+        results = pending.get()  # re-raises a worker's error here
+        while not progress_queue.empty():
+            bar.update(progress_queue.get_nowait())
+    return results
