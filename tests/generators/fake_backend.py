@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from bopsurg.bop.models import ObjectModel
 from bopsurg.generators.backend import CameraSpec, LightSpec, RenderedFrame, SceneState
 from bopsurg.generators.kinematics import pose
+
+from bopsurg.bop.models import ObjectModel
 
 HALF = 12  # patch half size, px
 TISSUE_MM = 400.0
@@ -48,8 +48,8 @@ class FakeBackend:
         v = camera.K[1, 1] * y / z + camera.K[1, 2]
         depth = np.zeros((camera.height, camera.width))
         if z > 0:
-            r0, r1 = int(round(v)) - HALF, int(round(v)) + HALF
-            c0, c1 = int(round(u)) - HALF, int(round(u)) + HALF
+            r0, r1 = int(np.rint(v)) - HALF, int(np.rint(v)) + HALF
+            c0, c1 = int(np.rint(u)) - HALF, int(np.rint(u)) + HALF
             depth[max(r0, 0) : max(r1, 0), max(c0, 0) : max(c1, 0)] = z * 1000.0
         return depth
 
