@@ -115,6 +115,7 @@ def needle_mesh(spec: NeedleSpec | None = None) -> ObjectModel:
     tip_faces = np.stack(
         [last + j.ravel(), last + (j.ravel() + 1) % n_sides, np.full(n_sides, tip_id)], 1
     )
-    # The rings run counter-clockwise seen from +Z; reverse the winding so normals face out.
-    faces = np.concatenate([tail, side_faces, tip_faces])[:, ::-1].astype(np.int64)
+    # Side quads are built inward-facing (rings run counter-clockwise seen from +Z): reverse
+    # them; the caps are already outward. Renderers that cull back faces need this right.
+    faces = np.concatenate([tail, side_faces[:, ::-1], tip_faces]).astype(np.int64)
     return ObjectModel(pts=vertices, faces=faces, normals=normals)

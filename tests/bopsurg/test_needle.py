@@ -14,6 +14,7 @@ def test_default_needle_is_a_closed_mesh_of_the_papers_size():
     m = needle_mesh()
     mesh = trimesh.Trimesh(m.pts, m.faces, process=False)
     assert mesh.is_watertight
+    assert mesh.is_winding_consistent
     assert mesh.volume > 0  # outward-facing triangles
     info = compute_model_info(m.pts)
     assert info["diameter"] == pytest.approx(18.65, abs=0.15)

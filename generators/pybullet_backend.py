@@ -1,0 +1,725 @@
+"""PyBullet rendering backend: headless RGB, metric depth and instance maps of the scene.
+
+:class:`PyBulletBackend` implements :class:`~bopsurg.generators.backend.RenderBackend` with
+pybullet's software TinyRenderer (default, exact) or its EGL plugin (optional). The scene is
+built by :mod:`bopsurg.generators.pybullet_scene`: every part (needle, instrument parts,
+phantom, drape) is a separate base-only multibody whose pose is set from forward kinematics
+in :meth:`PyBulletBackend.set_state`, so there is no URDF (no mimic-joint or joint-order
+quirks).
+
+Pixel convention: OpenCV intrinsics ``K`` (pixel centres at integer coordinates). TinyRenderer
+samples pixels at integer window coordinates and flips rows, so its projection uses the
+principal point ``(cx, cy + 1)``; the EGL plugin is real OpenGL and uses ``(cx + 0.5,
+cy + 0.5)`` (see ``libraries.md`` §2). Depth is camera-frame z (not range) in mm, 0 where
+nothing was hit.
+
+Object-alone renders (:meth:`PyBulletBackend.render_object_depth`) use a second pybullet
+client holding only the annotated objects, all hidden (alpha 0, which TinyRenderer skips at
+no cost) except the one rendered, and only the pixel window that the object's projection can
+cover is rendered, so BOP's 3×-canvas renders cost about as much as the object's pixels
+(1-3 ms). That client always uses TinyRenderer, also with ``renderer="egl"``: an EGL call
+costs ~10 ms whatever its size, and both renderers sample exact pixel centres, so their
+silhouettes differ only where a pixel centre lies within float rounding of an edge (a few
+pixels per frame, if any). With TinyRenderer, ``render``'s instance map equals the
+object-alone mask wherever nothing occludes the object.
+
+Lighting: :class:`~bopsurg.generators.backend.LightSpec` maps to ``getCameraImage``'s
+``lightDirection`` (towards the light, world frame), ``lightColor`` and the ambient, diffuse
+and specular coefficients. ``shadows`` switches TinyRenderer's shadow map on; it is computed
+from a light ``light_distance`` away looking at the world origin, with a depth bias too large
+for mm-scale casters, so it mostly dims the image slightly rather than drawing tool shadows.
+
+Speed: build the scene once (:meth:`~PyBulletBackend.load_scene`), then only poses change;
+nothing is re-uploaded per frame.
+
+Stdout: pybullet prints ``pybullet build time`` to stderr on import (harmless). The EGL plugin
+prints GL information to **stdout** through C stdio when it is loaded and unloaded; this
+module sends those writes to stderr (file descriptor 1 is pointed at 2 around the calls), so
+stdout stays clean for CLI output.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import importlib.util
+import logging
+import os
+import sys
+import tempfile
+import weakref
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import cv2
+import numpy as np
+import pybullet as p
+from bopsurg.generators.backend import CameraSpec, LightSpec, RenderedFrame, SceneState
+from bopsurg.generators.kinematics import SceneLayout
+from bopsurg.generators.pybullet_scene import (
+    ARMS,
+    SceneAssets,
+    VisualPart,
+    build_scene,
+    part_poses,
+)
+from numpy.typing import NDArray
+from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.transform import Rotation
+
+from bopsurg.bop.models import ObjectModel
+from bopsurg.needle import NeedleSpec
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+#: Recognised :meth:`PyBulletBackend.load_scene` keys.
+CONFIG_KEYS = (
+    "layout",
+    "needle",
+    "annotate_instruments",
+    "renderer",
+    "texture_seed",
+    "light_distance",
+)
+#: Renderers: pybullet's software TinyRenderer, or the EGL plugin (OpenGL, Mesa llvmpipe
+#: without a GPU).
+RENDERERS = ("tiny", "egl")
+
+#: Principal-point offsets (x, y), px, that make each renderer follow OpenCV's convention.
+PIXEL_OFFSETS = {"tiny": (0.0, 1.0), "egl": (0.5, 0.5)}
+
+#: Pose of the instruments and the needle before the first :meth:`PyBulletBackend.set_state`:
+#: both tools above the pad's centre, jaws slightly open, the needle lying on the pad.
+DEFAULT_PSM_JOINTS = {
+    "psm1": np.array([0.0, 0.0, 0.12, 0.0, 0.0, 0.0]),
+    "psm2": np.array([0.0, 0.0, 0.12, 0.0, 0.0, 0.0]),
+}
+DEFAULT_JAWS = {"psm1": 0.3, "psm2": 0.3}
+DEFAULT_NEEDLE_POSE = np.array(
+    [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.004], [0.0, 0.0, 0.0, 1.0]]
+)
+
+# The EGL plugin keeps one renderer per process, shared by every client that loads it:
+# two EGL scenes would draw into each other, and unloading one crashes the other. So at most
+# one live backend per process may use it.
+_egl_owner: weakref.ref[PyBulletBackend] | None = None
+
+# OpenCV camera axes (x right, y down, z forward) -> OpenGL ones (y up, z backward).
+_CV2GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def projection_matrix(
+    K: F64, width: int, height: int, near: float, far: float, offset: tuple[float, float]
+) -> list[float]:
+    """OpenGL projection (column-major, as pybullet wants it) of an OpenCV camera.
+
+    Args:
+        K: (3, 3) intrinsics, px.
+        width, height: Image size, px.
+        near, far: Clipping distances, m.
+        offset: Principal-point offset of the renderer, px (:data:`PIXEL_OFFSETS`).
+    """
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    ox, oy = offset
+    P = np.array(
+        [
+            [2 * fx / width, -2 * skew / width, 1 - 2 * (cx + ox) / width, 0.0],
+            [0.0, 2 * fy / height, 2 * (cy + oy) / height - 1, 0.0],
+            [0.0, 0.0, -(far + near) / (far - near), -2 * far * near / (far - near)],
+            [0.0, 0.0, -1.0, 0.0],
+        ]
+    )
+    return P.T.ravel().tolist()
+
+
+def view_matrix(T_world_cam: F64) -> list[float]:
+    """OpenGL view matrix (column-major) of a camera pose with OpenCV axes, m."""
+    return (_CV2GL @ np.linalg.inv(T_world_cam)).T.ravel().tolist()
+
+
+def depth_buffer_to_mm(
+    buffer: NDArray[Any], near: float, far: float, seg: NDArray[Any] | None = None
+) -> F64:
+    """Camera-frame z (mm) from a [0, 1] depth buffer, 0 on the background.
+
+    Args:
+        buffer: Depth buffer from ``getCameraImage``.
+        near, far: The projection's clipping distances, m.
+        seg: The segmentation buffer of the same render: background is where it is −1. Without
+            it, background is where the buffer is within 1e-6 of 1 (TinyRenderer's cleared
+            buffer reads 1 − 6e-8 after float32 rounding, not exactly 1).
+    """
+    d = np.asarray(buffer, dtype=np.float64)
+    background = (np.asarray(seg) < 0) if seg is not None else (d >= 1.0 - 1e-6)
+    # z = far·near / (far − (far − near)·d), in place (this runs on every frame)
+    d *= -(far - near)
+    d += far
+    z = np.divide(1000.0 * far * near, d, out=d)
+    z[background] = 0.0
+    return z
+
+
+def render_window(
+    points: F64, T_cam_obj: F64, K: F64, width: int, height: int, near: float
+) -> tuple[int, int, int, int] | None:
+    """Pixel window ``(u0, v0, u1, v1)`` (end exclusive) that contains an object's projection.
+
+    Args:
+        points: (N, 3) points whose convex hull contains the object (its frame), m.
+        T_cam_obj: Object pose in the camera, m.
+        K: Intrinsics, px.
+        width, height: Canvas size, px.
+        near: Near clipping distance, m.
+
+    Returns:
+        The window clipped to the canvas (the whole canvas when a point is not in front of
+        the near plane), or None when the projection misses the canvas.
+    """
+    P = points @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    if P[:, 2].min() <= near:
+        return 0, 0, width, height
+    u = K[0, 0] * P[:, 0] / P[:, 2] + K[0, 1] * P[:, 1] / P[:, 2] + K[0, 2]
+    v = K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]
+    # Pixel centres are at integer coordinates; one pixel of margin against rounding.
+    u0 = max(int(np.floor(u.min())) - 1, 0)
+    v0 = max(int(np.floor(v.min())) - 1, 0)
+    u1 = min(int(np.ceil(u.max())) + 2, width)
+    v1 = min(int(np.ceil(v.max())) + 2, height)
+    if u0 >= u1 or v0 >= v1:
+        return None
+    return u0, v0, u1, v1
+
+
+def hull_points(model: ObjectModel) -> F64:
+    """Vertices of the model's convex hull (its bounding-box corners if flat), mm."""
+    try:
+        return model.pts[ConvexHull(model.pts).vertices]
+    except (QhullError, ValueError):
+        lo, hi = model.pts.min(axis=0), model.pts.max(axis=0)
+        corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)])
+        return lo + corners * (hi - lo)
+
+
+@contextlib.contextmanager
+def stdout_to_stderr() -> Iterator[None]:
+    """Send writes to file descriptor 1 to 2 (C libraries that print, like the EGL plugin)."""
+    if sys.stdout is not None:
+        sys.stdout.flush()
+    libc = ctypes.CDLL(None)
+    libc.fflush(None)
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        libc.fflush(None)  # C stdio buffers what it printed; flush it while 1 is still stderr
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def load_egl(client: int) -> int:
+    """Load pybullet's EGL renderer plugin into a client (before any body is created).
+
+    Returns:
+        The plugin id.
+
+    Raises:
+        RuntimeError: The plugin is missing or fails to load (no EGL library).
+    """
+    spec = importlib.util.find_spec("eglRenderer")
+    if spec is None or spec.origin is None:
+        raise RuntimeError("pybullet's eglRenderer plugin is not installed")
+    with stdout_to_stderr():
+        plugin = p.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=client)
+    if plugin < 0:
+        raise RuntimeError("pybullet's EGL renderer plugin failed to load")
+    return plugin
+
+
+def write_obj(
+    path: Path, model: ObjectModel, uvs: F64 | None = None, *, double_sided: bool = False
+) -> None:
+    """Write a model as a Wavefront OBJ in **metres** (pybullet reads meshes from files).
+
+    Mesh files rather than ``createVisualShape(vertices=...)`` arrays: the EGL plugin crashes
+    on array meshes, and arrays are limited to about 130k vertices. Nine significant digits
+    round-trip float32, which is what pybullet keeps.
+
+    Args:
+        path: Output file.
+        model: Mesh in mm.
+        uvs: (V, 2) texture coordinates, or None.
+        double_sided: Also write every triangle with the opposite winding (TinyRenderer culls
+            back faces, so a mesh with inconsistent winding would lose faces).
+    """
+    faces = model.faces
+    if double_sided:
+        faces = np.concatenate([faces, faces[:, ::-1]])
+    lines = [_rows("v", model.pts * 1e-3)]
+    if uvs is not None:
+        lines.append(_rows("vt", uvs))
+    if model.normals is not None:
+        lines.append(_rows("vn", model.normals))
+    f = faces + 1
+    if uvs is not None and model.normals is not None:
+        corner = np.repeat(f, 3, axis=1)  # a/a/a: same index for position, uv and normal
+        lines.append(_rows("f", corner, "%d/%d/%d %d/%d/%d %d/%d/%d"))
+    elif model.normals is not None:
+        lines.append(_rows("f", np.repeat(f, 2, axis=1), "%d//%d %d//%d %d//%d"))
+    elif uvs is not None:
+        lines.append(_rows("f", np.repeat(f, 2, axis=1), "%d/%d %d/%d %d/%d"))
+    else:
+        lines.append(_rows("f", f, "%d %d %d"))
+    path.write_text("".join(lines))
+
+
+def _rows(tag: str, values: NDArray[Any], fmt: str | None = None) -> str:
+    """OBJ lines ``tag v0 v1 ...`` of a 2D array (vectorised formatting)."""
+    if len(values) == 0:
+        return ""
+    fmt = fmt or " ".join(["%.9g"] * values.shape[1])
+    template = f"{tag} {fmt}\n"
+    return "".join(template * len(values)) % tuple(values.ravel().tolist())
+
+
+def upload_part(client: int, part: VisualPart, folder: Path, texture: int | None = None) -> int:
+    """Create a base-only multibody (no collision, no mass) showing one part, m.
+
+    Args:
+        client: pybullet client.
+        part: The part (mesh in mm).
+        folder: Where to write the part's OBJ file (read at once; may be deleted afterwards).
+        texture: pybullet texture id for a textured part.
+
+    Returns:
+        The body's unique id.
+    """
+    path = folder / f"{part.name}.obj"
+    if not path.exists():
+        write_obj(path, part.model, part.uvs, double_sided=part.double_sided)
+    shape = p.createVisualShape(
+        p.GEOM_MESH,
+        fileName=str(path),
+        rgbaColor=list(part.rgba),
+        specularColor=list(part.specular),
+        physicsClientId=client,
+    )
+    if shape < 0:
+        raise RuntimeError(f"pybullet could not create the visual shape of {part.name!r}")
+    body = p.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=client)
+    if texture is not None:
+        p.changeVisualShape(body, -1, textureUniqueId=texture, physicsClientId=client)
+    return body
+
+
+def _quaternions(poses: list[F64]) -> NDArray[np.float64]:
+    """(N, 4) xyzw quaternions of 4×4 poses (one scipy call for all)."""
+    return Rotation.from_matrix(np.stack([T[:3, :3] for T in poses])).as_quat()
+
+
+@dataclass(frozen=True)
+class _Config:
+    layout: SceneLayout
+    needle: NeedleSpec
+    annotate_instruments: bool
+    renderer: str
+    texture_seed: int
+    light_distance: float
+
+
+def parse_config(config: dict[str, Any]) -> _Config:
+    """Check a :meth:`PyBulletBackend.load_scene` mapping and fill in the defaults.
+
+    Raises:
+        ValueError: An unknown key or value.
+        TypeError: A value of the wrong type.
+    """
+    unknown = sorted(set(config) - set(CONFIG_KEYS))
+    if unknown:
+        raise ValueError(f"unknown scene config key {unknown[0]!r}; expected some of {CONFIG_KEYS}")
+    layout = config.get("layout") or SceneLayout()
+    if not isinstance(layout, SceneLayout):
+        raise TypeError(f"'layout' must be a SceneLayout, got {type(layout).__name__}")
+    needle = config.get("needle")
+    if needle is None:
+        needle = NeedleSpec()
+    elif isinstance(needle, dict):
+        needle = NeedleSpec(**needle)
+    elif not isinstance(needle, NeedleSpec):
+        raise TypeError(f"'needle' must be NeedleSpec keyword arguments, got {needle!r}")
+    renderer = config.get("renderer", "tiny")
+    if renderer not in RENDERERS:
+        raise ValueError(f"'renderer' must be one of {RENDERERS}, got {renderer!r}")
+    light_distance = float(config.get("light_distance", 0.3))
+    if light_distance <= 0:
+        raise ValueError(f"'light_distance' must be positive, got {light_distance}")
+    return _Config(
+        layout=layout,
+        needle=needle,
+        annotate_instruments=bool(config.get("annotate_instruments", False)),
+        renderer=renderer,
+        texture_seed=int(config.get("texture_seed", 0)),
+        light_distance=light_distance,
+    )
+
+
+class PyBulletBackend:
+    """The built-in rendering backend (pybullet, headless, one DIRECT client per instance).
+
+    Usage::
+
+        with PyBulletBackend() as backend:
+            backend.load_scene({"annotate_instruments": True})
+            backend.set_state(state)
+            frame = backend.render(camera, LightSpec())
+            amodal = backend.render_object_depth("needle", big_camera)
+
+    Several instances can live in one process; each owns its pybullet clients.
+    """
+
+    def __init__(self) -> None:
+        self._client: int | None = None
+        self._solo: int | None = None  # annotated objects only, for object-alone renders
+        self._cfg: _Config | None = None
+        self._assets: SceneAssets | None = None
+        self._bodies: dict[str, int] = {}
+        self._solo_bodies: dict[str, int] = {}
+        self._solo_shown: str | None = None
+        self._poses: dict[str, F64] = {}
+        self._hulls: dict[str, F64] = {}  # annotated objects' hull points, m
+        self._lut = np.zeros(1, dtype=np.int32)  # body id + 1 -> instance value
+        self._jaws: dict[str, float] = dict(DEFAULT_JAWS)
+
+    # ------------------------------------------------------------------- lifetime
+
+    def __enter__(self) -> PyBulletBackend:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
+
+    def close(self) -> None:
+        """Disconnect the pybullet clients (idempotent)."""
+        global _egl_owner
+        egl = self._cfg is not None and self._cfg.renderer == "egl"
+        for client in (self._client, self._solo):
+            if client is None:
+                continue
+            with contextlib.suppress(p.error):
+                if egl and client == self._client:
+                    with stdout_to_stderr():  # the plugin prints when it is unloaded
+                        p.disconnect(physicsClientId=client)
+                else:
+                    p.disconnect(physicsClientId=client)
+        self._client = self._solo = None
+        self._bodies, self._solo_bodies, self._solo_shown = {}, {}, None
+        if _egl_owner is not None and _egl_owner() is self:
+            _egl_owner = None
+
+    # ---------------------------------------------------------------------- scene
+
+    def load_scene(self, config: dict[str, Any]) -> None:
+        """Build the scene (replacing any previous one).
+
+        Args:
+            config: Mapping with the optional keys
+
+                - ``layout``: :class:`~bopsurg.generators.kinematics.SceneLayout` (None =
+                  default), where the arms stand;
+                - ``needle``: :class:`~bopsurg.needle.NeedleSpec` or its keyword arguments
+                  (None = default needle);
+                - ``annotate_instruments`` (bool, False): also annotate the instruments'
+                  wrists and jaws (obj_ids 2..7, see :mod:`~.pybullet_scene`);
+                - ``renderer``: ``"tiny"`` (default, exact) or ``"egl"`` (faster; depth
+                  quantised to µm; one EGL backend per process at a time; raises
+                  RuntimeError if the plugin does not load or another backend uses it);
+                - ``texture_seed`` (int, 0): seed of the procedural textures;
+                - ``light_distance`` (float, 0.3 m): distance of the shadow-casting light
+                  from the world origin (TinyRenderer's shadow map looks at the origin).
+
+        Raises:
+            ValueError: An unknown key or value (the message names the key).
+        """
+        cfg = parse_config(config)
+        self.close()
+        try:
+            self._build(cfg)
+        except BaseException:
+            self.close()  # no half-built scene: load_scene() must be called again
+            self._cfg = self._assets = None
+            raise
+
+    def _build(self, cfg: _Config) -> None:
+        """Create the clients, upload every part, pose them at the default state."""
+        self._cfg = cfg
+        assets = build_scene(
+            cfg.needle,
+            cfg.layout,
+            annotate_instruments=cfg.annotate_instruments,
+            texture_seed=cfg.texture_seed,
+        )
+        self._assets = assets
+        if cfg.renderer == "egl":
+            self._claim_egl()
+        self._client = p.connect(p.DIRECT)
+        if cfg.renderer == "egl":
+            load_egl(self._client)  # before any body, or the plugin does not see them
+        # pybullet reads meshes and textures from files only: write them to a private
+        # temporary folder, removed as soon as everything is loaded.
+        with tempfile.TemporaryDirectory(prefix="bopsurg_scene_") as tmp:
+            folder = Path(tmp)
+            textures = self._load_textures(assets, folder)
+            # Creation order is draw order: near things first, so that TinyRenderer's depth
+            # test rejects hidden tissue and drape pixels before shading them.
+            self._bodies = {
+                name: upload_part(
+                    self._client, part, folder, textures[part.texture] if part.texture else None
+                )
+                for name, part in assets.parts.items()
+            }
+            # Object-alone renders: a second client (always TinyRenderer: it skips alpha-0
+            # bodies, and its cost is per covered pixel, not per call like EGL's).
+            self._solo = p.connect(p.DIRECT)
+            for name in assets.annotated:
+                body = upload_part(self._solo, assets.parts[name], folder)
+                p.changeVisualShape(body, -1, rgbaColor=[1, 1, 1, 0], physicsClientId=self._solo)
+                self._solo_bodies[name] = body
+        self._hulls = {
+            name: hull_points(assets.parts[name].model) * 1e-3 for name in assets.annotated
+        }
+        # seg + 1 indexes the table; its last entry (0) catches anything out of range.
+        self._lut = np.zeros(max(self._bodies.values()) + 3, dtype=np.int32)
+        for k, name in enumerate(assets.annotated):
+            self._lut[self._bodies[name] + 1] = k + 1
+        self._poses = {name: np.eye(4) for name in assets.parts}
+        self._jaws = dict(DEFAULT_JAWS)
+        self._apply_poses(
+            part_poses(cfg.layout, DEFAULT_PSM_JOINTS, DEFAULT_JAWS, DEFAULT_NEEDLE_POSE)
+        )
+        log.debug(
+            "scene loaded: %d bodies, annotated %s, renderer %s",
+            len(self._bodies),
+            assets.annotated,
+            cfg.renderer,
+        )
+
+    def _claim_egl(self) -> None:
+        """Become the process's only EGL user, or raise RuntimeError if another one is."""
+        global _egl_owner
+        owner = _egl_owner() if _egl_owner is not None else None
+        if owner is not None and owner is not self and owner._client is not None:
+            raise RuntimeError(
+                "another PyBulletBackend in this process already uses the EGL renderer "
+                "(pybullet's EGL plugin holds one scene per process); close it first"
+            )
+        _egl_owner = weakref.ref(self)
+
+    def _load_textures(self, assets: SceneAssets, folder: Path) -> dict[str, int]:
+        """Load the procedural textures into the main client (via PNG files in ``folder``)."""
+        ids = {}
+        for key, image in assets.textures.items():
+            path = folder / f"{key}.png"
+            if not cv2.imwrite(str(path), np.ascontiguousarray(image[..., ::-1])):
+                raise RuntimeError(f"could not write the texture {path}")
+            ids[key] = p.loadTexture(str(path), physicsClientId=self._client)
+            if ids[key] < 0:
+                raise RuntimeError(f"pybullet could not load the texture {path}")
+        return ids
+
+    def _require(self) -> tuple[int, SceneAssets, _Config]:
+        if self._client is None or self._assets is None or self._cfg is None:
+            raise RuntimeError("no scene: call load_scene() first")
+        return self._client, self._assets, self._cfg
+
+    def annotated_objects(self) -> list[tuple[str, int]]:
+        """(name, BOP obj_id) of the annotated objects: the needle (1), then instrument parts."""
+        _, assets, _ = self._require()
+        return [(name, k + 1) for k, name in enumerate(assets.annotated)]
+
+    def object_model(self, name: str) -> ObjectModel:
+        """BOP model (mm, in the object's frame) of an annotated object or any scene part.
+
+        Raises:
+            KeyError: No such object.
+        """
+        _, assets, _ = self._require()
+        if name not in assets.parts:
+            raise KeyError(f"no object {name!r}; annotated: {list(assets.annotated)}")
+        return assets.parts[name].model
+
+    # ---------------------------------------------------------------------- state
+
+    def set_state(self, state: SceneState) -> None:
+        """Pose the instruments (FK of each arm's joints and jaw) and the needle.
+
+        Arms missing from ``state.psm_joints`` keep their pose; a missing jaw angle keeps the
+        previous one. ``state.ecm_joints`` is not used: cameras come with each render call.
+
+        Raises:
+            ValueError: An unknown arm name or a malformed needle pose.
+        """
+        _, _, cfg = self._require()
+        needle = np.asarray(state.needle_pose, dtype=np.float64)
+        if needle.shape != (4, 4):
+            raise ValueError(f"needle_pose must be 4x4, got shape {needle.shape}")
+        unknown = sorted(set(state.jaws) - set(ARMS))
+        if unknown:
+            raise ValueError(f"unknown arm {unknown[0]!r} in jaws; expected one of {ARMS}")
+        jaws = dict(self._jaws)
+        jaws.update({k: float(v) for k, v in state.jaws.items()})
+        poses = part_poses(cfg.layout, state.psm_joints, jaws, needle)
+        self._jaws = jaws
+        self._apply_poses(poses)
+
+    def _apply_poses(self, poses: dict[str, F64]) -> None:
+        client, _, _ = self._require()
+        names = list(poses)
+        quats = _quaternions([poses[n] for n in names])
+        for name, q in zip(names, quats, strict=True):
+            T = poses[name]
+            self._poses[name] = T
+            p.resetBasePositionAndOrientation(
+                self._bodies[name], T[:3, 3].tolist(), q.tolist(), physicsClientId=client
+            )
+
+    def object_pose(self, name: str) -> F64:
+        """``T_world_object`` (4, 4), m, of an object's model frame.
+
+        Raises:
+            KeyError: No such object.
+        """
+        self._require()
+        if name not in self._poses:
+            raise KeyError(f"no object {name!r}")
+        return self._poses[name].copy()
+
+    # ------------------------------------------------------------------ rendering
+
+    @staticmethod
+    def _camera_args(
+        camera: CameraSpec, K: F64, width: int, height: int, renderer: str
+    ) -> dict[str, Any]:
+        """getCameraImage arguments of a camera (with intrinsics ``K``, size, renderer)."""
+        return {
+            "width": width,
+            "height": height,
+            "viewMatrix": view_matrix(np.asarray(camera.T_world_cam, dtype=np.float64)),
+            "projectionMatrix": projection_matrix(
+                K, width, height, camera.near, camera.far, PIXEL_OFFSETS[renderer]
+            ),
+            "renderer": p.ER_BULLET_HARDWARE_OPENGL if renderer == "egl" else p.ER_TINY_RENDERER,
+        }
+
+    def render(self, camera: CameraSpec, light: LightSpec) -> RenderedFrame:
+        """Render the whole scene: RGB, z-depth (mm) and the annotated-instance map."""
+        client, _, cfg = self._require()
+        K = np.asarray(camera.K, dtype=np.float64)
+        direction = np.asarray(light.direction, dtype=np.float64)
+        direction = direction / np.linalg.norm(direction)
+        # The EGL plugin prints to stdout on some calls: keep stdout clean.
+        quiet = stdout_to_stderr() if cfg.renderer == "egl" else contextlib.nullcontext()
+        with quiet:
+            _, _, rgba, depth, seg = p.getCameraImage(
+                **self._camera_args(camera, K, camera.width, camera.height, cfg.renderer),
+                lightDirection=direction.tolist(),
+                lightColor=np.asarray(light.color, dtype=np.float64).tolist(),
+                lightDistance=cfg.light_distance,
+                shadow=int(bool(light.shadows)),
+                lightAmbientCoeff=float(light.ambient),
+                lightDiffuseCoeff=float(light.diffuse),
+                lightSpecularCoeff=float(light.specular),
+                physicsClientId=client,
+            )
+        shape = (camera.height, camera.width)
+        rgb = np.ascontiguousarray(np.asarray(rgba, dtype=np.uint8).reshape(*shape, 4)[..., :3])
+        seg = np.asarray(seg).reshape(shape)
+        z = depth_buffer_to_mm(np.asarray(depth).reshape(shape), camera.near, camera.far, seg)
+        # Background is -1; base-only bodies carry no link bits, so seg is the body id.
+        instance = np.take(self._lut, seg + 1, mode="clip")
+        return RenderedFrame(rgb=rgb, depth=z, instance=instance)
+
+    def render_object_depth(self, name: str, camera: CameraSpec) -> F64:
+        """Depth (mm) of one annotated object alone (nothing occludes it).
+
+        The camera may be larger than the image (BOP's 3× canvas with the principal point
+        shifted by (W, H)); only the window the object's projection can cover is rendered.
+
+        Raises:
+            KeyError: ``name`` is not an annotated object.
+        """
+        _, assets, _ = self._require()
+        if name not in assets.annotated:
+            raise KeyError(f"{name!r} is not annotated; annotated: {list(assets.annotated)}")
+        K = np.asarray(camera.K, dtype=np.float64)
+        out = np.zeros((camera.height, camera.width))
+        T_cam_obj = np.linalg.solve(camera.T_world_cam, self._poses[name])
+        window = render_window(
+            self._hulls[name], T_cam_obj, K, camera.width, camera.height, camera.near
+        )
+        if window is None:
+            return out
+        u0, v0, u1, v1 = window
+        Kw = K.copy()
+        Kw[0, 2] -= u0
+        Kw[1, 2] -= v0
+        depth, seg = self._render_solo(
+            name, self._camera_args(camera, Kw, u1 - u0, v1 - v0, "tiny")
+        )
+        shape = (v1 - v0, u1 - u0)
+        out[v0:v1, u0:u1] = depth_buffer_to_mm(
+            np.asarray(depth).reshape(shape),
+            camera.near,
+            camera.far,
+            np.asarray(seg).reshape(shape),
+        )
+        return out
+
+    def _render_solo(self, name: str, args: dict[str, Any]) -> tuple[NDArray[Any], NDArray[Any]]:
+        """Depth and segmentation buffers of the object in the solo client (TinyRenderer)."""
+        solo = self._solo
+        assert solo is not None
+        if self._solo_shown != name:
+            if self._solo_shown is not None:
+                p.changeVisualShape(
+                    self._solo_bodies[self._solo_shown],
+                    -1,
+                    rgbaColor=[1, 1, 1, 0],
+                    physicsClientId=solo,
+                )
+            p.changeVisualShape(
+                self._solo_bodies[name], -1, rgbaColor=[1, 1, 1, 1], physicsClientId=solo
+            )
+            self._solo_shown = name
+        T = self._poses[name]
+        q = _quaternions([T])[0]
+        p.resetBasePositionAndOrientation(
+            self._solo_bodies[name], T[:3, 3].tolist(), q.tolist(), physicsClientId=solo
+        )
+        # The segmentation buffer costs nothing and tells the background exactly.
+        _, _, _, depth, seg = p.getCameraImage(**args, physicsClientId=solo)
+        return depth, seg
+
+
+__all__ = [
+    "ARMS",
+    "CONFIG_KEYS",
+    "PyBulletBackend",
+    "depth_buffer_to_mm",
+    "projection_matrix",
+    "render_window",
+    "view_matrix",
+]

@@ -1,0 +1,543 @@
+"""Procedural assets of the suturing scene, built by code (no downloaded meshes).
+
+Everything here is plain numpy: meshes as :class:`~bopsurg.bop.models.ObjectModel` in **mm**
+(BOP units) in each part's own frame, texture images as uint8 arrays, and part poses in the
+world frame in **metres** (ROS / CRTK SI). :mod:`bopsurg.generators.pybullet_backend` uploads
+them to pybullet (scaling the vertices by 1e-3), so the same models serve as BOP ``models/``.
+
+The scene (world +Z up, tissue top at z = 0 around the origin, see
+:mod:`bopsurg.generators.kinematics`):
+
+- ``needle``: :func:`bopsurg.needle.needle_mesh`, silver-grey, posed by ``T_world_needle``.
+- two Large Needle Driver instruments ``psm1`` and ``psm2``, each made of separate rigid
+  parts posed from :func:`~bopsurg.generators.kinematics.psm_link_frames`:
+
+  - ``<arm>_shaft``: Ø 8 mm black cylinder in the roll-link frame, along its −z, ending just
+    short of the roll-link origin (the wrist pitch axis);
+  - ``<arm>_wrist``: the pitch link (clevis), a 13 × 6 × 8 mm metal box in the wrist-pitch
+    frame, spanning its +x axis from the pitch axis to beyond the yaw axis (9 mm);
+  - ``<arm>_yaw``: the jaw pivot hub, a Ø 4 mm cylinder on the yaw axis (wrist-yaw frame z);
+  - ``<arm>_jaw1`` / ``<arm>_jaw2``: 10 mm tapered jaws along the tool-tip frame's +z, rotated
+    by ∓jaw/2 about the tip frame's x axis (the yaw axis), so they open symmetrically about
+    the tip z axis by the jaw angle; jaw1 lies on the tip frame's +y side.
+
+- ``phantom``: an 80 × 60 × 8 mm suturing pad (top at z = 0) with two raised ridges and three
+  incisions, skin-like procedural texture; ``drape``: a 0.5 m square blue-green drape at the
+  pad's bottom (z = −8 mm).
+
+Annotated objects (BOP obj_ids, in this order): ``needle`` = 1, and with instruments
+annotated ``psm1_wrist, psm1_jaw1, psm1_jaw2, psm2_wrist, psm2_jaw1, psm2_jaw2`` = 2..7; each
+model frame is the part frame above.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from bopsurg.generators.kinematics import SceneLayout, psm_link_frames, rot_x
+from numpy.typing import ArrayLike, NDArray
+
+from bopsurg.bop.models import ObjectModel
+from bopsurg.needle import NeedleSpec, needle_mesh
+
+F64 = NDArray[np.float64]
+
+#: Arms, in annotation order; index i is ``SceneLayout.psm_base(i)``.
+ARMS = ("psm1", "psm2")
+#: Instrument parts per arm; the annotated ones (with ``annotate_instruments``) are marked.
+INSTRUMENT_PARTS = ("shaft", "wrist", "yaw", "jaw1", "jaw2")
+ANNOTATED_INSTRUMENT_PARTS = ("wrist", "jaw1", "jaw2")
+
+# Instrument geometry, mm (Large Needle Driver, approximate).
+SHAFT_RADIUS = 4.0
+SHAFT_LENGTH = 300.0  # longer than the maximal insertion, so it always reaches the RCM
+SHAFT_END = -1.5  # the shaft stops just short of the pitch axis, inside the clevis
+WRIST_SIZE = (13.0, 6.0, 8.0)  # along the link (x), the yaw axis (y), the pitch axis (z)
+WRIST_X0 = -3.0  # the clevis starts 3 mm proximal of the pitch axis
+HUB_RADIUS = 2.0
+HUB_LENGTH = 5.0
+JAW_LENGTH = 10.0
+JAW_ROOT = -1.0  # jaws start 1 mm behind the pivot, inside the hub
+JAW_WIDTH = (3.0, 1.6)  # along the yaw axis, at the root and at the tip
+JAW_THICKNESS = (1.4, 0.6)  # in the opening direction, at the root and at the tip
+
+# Phantom geometry, mm.
+PAD_SIZE = (80.0, 60.0)
+PAD_THICKNESS = 8.0
+RIDGES_Y = (-20.0, 20.0)  # centre lines of the raised ridges (along x)
+RIDGE_HEIGHT = 2.5
+RIDGE_HALF_WIDTH = 4.0
+INCISIONS_X = (-20.0, 0.0, 20.0)  # centre lines of the incisions (along y)
+INCISION_HALF_LENGTH = 12.0
+INCISION_HALF_WIDTH = 0.6  # at the top; the flat bottom is 0.1 mm narrower on each side
+INCISION_DEPTH = 3.0
+DRAPE_SIZE = 500.0
+
+# Colours (RGBA in [0, 1]) and specular colours.
+NEEDLE_RGBA = (0.78, 0.78, 0.80, 1.0)
+SHAFT_RGBA = (0.09, 0.09, 0.10, 1.0)
+METAL_RGBA = (0.64, 0.65, 0.67, 1.0)
+JAW_RGBA = (0.55, 0.56, 0.58, 1.0)
+METAL_SPECULAR = (0.9, 0.9, 0.9)
+MATTE_SPECULAR = (0.05, 0.05, 0.05)
+
+
+@dataclass(frozen=True, eq=False)
+class VisualPart:
+    """One rigid visual part of the scene.
+
+    Attributes:
+        name: Unique part name (``needle``, ``psm1_jaw1``, ``phantom``, ...).
+        model: Mesh in mm in the part frame, outward-wound triangles and vertex normals.
+        rgba: Colour (multiplies the texture when there is one).
+        specular: Specular colour.
+        uvs: (V, 2) texture coordinates in [0, 1), or None.
+        texture: Key of the part's texture in :attr:`SceneAssets.textures`, or None.
+        double_sided: Upload each triangle with both windings (pybullet's TinyRenderer culls
+            back faces; meshes whose winding is not consistent would lose faces).
+    """
+
+    name: str
+    model: ObjectModel
+    rgba: tuple[float, float, float, float]
+    specular: tuple[float, float, float] = MATTE_SPECULAR
+    uvs: F64 | None = None
+    texture: str | None = None
+    double_sided: bool = False
+
+
+@dataclass(frozen=True)
+class SceneAssets:
+    """All parts of a scene, their textures and the annotated objects.
+
+    Attributes:
+        parts: The parts, by name.
+        textures: (H, W, 3) uint8 RGB images, by key.
+        annotated: Names of the annotated objects in BOP obj_id order (obj_id = index + 1).
+        layout: Where the robots stand.
+    """
+
+    parts: dict[str, VisualPart]
+    textures: dict[str, NDArray[np.uint8]]
+    annotated: tuple[str, ...]
+    layout: SceneLayout = field(default_factory=SceneLayout)
+
+
+# ----------------------------------------------------------------------------- primitives
+
+
+def _flat_polygons(polygons: list[F64]) -> ObjectModel:
+    """Flat-shaded mesh of convex planar polygons (each (n, 3), counter-clockwise from outside)."""
+    pts, faces, normals = [], [], []
+    base = 0
+    for poly in polygons:
+        poly = np.asarray(poly, dtype=np.float64)
+        n = np.cross(poly[1] - poly[0], poly[2] - poly[0])
+        n = n / np.linalg.norm(n)
+        pts.append(poly)
+        normals.append(np.repeat(n[None], len(poly), axis=0))
+        faces.extend([base, base + k, base + k + 1] for k in range(1, len(poly) - 1))
+        base += len(poly)
+    return ObjectModel(
+        pts=np.concatenate(pts), faces=np.asarray(faces), normals=np.concatenate(normals)
+    )
+
+
+def _merge(models: list[ObjectModel]) -> ObjectModel:
+    """One mesh holding several (vertex indices re-based)."""
+    offsets = np.cumsum([0] + [m.n_vertices for m in models[:-1]])
+    return ObjectModel(
+        pts=np.concatenate([m.pts for m in models]),
+        faces=np.concatenate([m.faces + o for m, o in zip(models, offsets, strict=True)]),
+        normals=np.concatenate([m.normals for m in models]),  # type: ignore[misc]
+    )
+
+
+def frustum_mesh(
+    z0: float,
+    z1: float,
+    size0: tuple[float, float],
+    size1: tuple[float, float],
+    offset0: tuple[float, float] = (0.0, 0.0),
+    offset1: tuple[float, float] = (0.0, 0.0),
+) -> ObjectModel:
+    """Flat-shaded closed hexahedron along z with rectangular ends, mm.
+
+    Args:
+        z0, z1: z of the two ends (z0 < z1).
+        size0, size1: (x, y) sizes of the ends.
+        offset0, offset1: (x, y) centres of the ends.
+    """
+
+    def rect(z: float, size: tuple[float, float], off: tuple[float, float]) -> F64:
+        hx, hy = 0.5 * size[0], 0.5 * size[1]
+        return np.array(
+            [
+                [off[0] - hx, off[1] - hy, z],
+                [off[0] + hx, off[1] - hy, z],
+                [off[0] + hx, off[1] + hy, z],
+                [off[0] - hx, off[1] + hy, z],
+            ]
+        )
+
+    a, b = rect(z0, size0, offset0), rect(z1, size1, offset1)
+    polys = [a[::-1], b]  # the z0 end faces −z, the z1 end +z
+    for k in range(4):
+        j = (k + 1) % 4
+        polys.append(np.array([a[k], a[j], b[j], b[k]]))
+    return _flat_polygons(polys)
+
+
+def box_mesh(size: ArrayLike, center: ArrayLike = (0.0, 0.0, 0.0)) -> ObjectModel:
+    """Flat-shaded box with edge lengths ``size`` (3,) centred at ``center``, mm."""
+    sx, sy, sz = np.asarray(size, dtype=np.float64)
+    cx, cy, cz = np.asarray(center, dtype=np.float64)
+    return frustum_mesh(cz - sz / 2, cz + sz / 2, (sx, sy), (sx, sy), (cx, cy), (cx, cy))
+
+
+def cylinder_mesh(
+    radius: float, z0: float, z1: float, sides: int = 24, max_segment: float | None = None
+) -> ObjectModel:
+    """Closed cylinder along z from ``z0`` to ``z1``: smooth sides, flat caps, mm.
+
+    Args:
+        radius: Radius, mm.
+        z0, z1: Ends, mm (z0 < z1).
+        sides: Vertices per ring.
+        max_segment: Longest side triangle along z, mm (None = one segment). TinyRenderer
+            tests every pixel of each triangle's screen bounding box, so long thin triangles
+            seen obliquely are slow: split long cylinders.
+    """
+    n_seg = 1 if max_segment is None else max(1, int(np.ceil((z1 - z0) / max_segment)))
+    phi = 2.0 * np.pi * np.arange(sides) / sides
+    ring = np.stack([radius * np.cos(phi), radius * np.sin(phi)], axis=1)
+    radial = np.concatenate([ring / radius, np.zeros((sides, 1))], axis=1)
+    zs = np.linspace(z0, z1, n_seg + 1)
+    rings = [np.concatenate([ring, np.full((sides, 1), z)], axis=1) for z in zs]
+    j = np.arange(sides)
+    k = (j + 1) % sides
+    faces = []
+    for s in range(n_seg):
+        a, b = s * sides, (s + 1) * sides
+        faces += [np.stack([a + j, a + k, b + k], 1), np.stack([a + j, b + k, b + j], 1)]
+    side = ObjectModel(
+        pts=np.concatenate(rings),
+        faces=np.concatenate(faces),
+        normals=np.tile(radial, (n_seg + 1, 1)),
+    )
+    caps = _flat_polygons([rings[0][::-1], rings[-1]])
+    return _merge([side, caps])
+
+
+def jaw_mesh(side: int) -> ObjectModel:
+    """One tapered jaw in its own frame (pivot at the origin, along +z), mm.
+
+    Args:
+        side: +1 for the jaw on the +y side of the closed pair (its grasping face at y = 0),
+            −1 for the other one.
+    """
+    t0, t1 = JAW_THICKNESS
+    return frustum_mesh(
+        JAW_ROOT,
+        JAW_LENGTH,
+        (JAW_WIDTH[0], t0),
+        (JAW_WIDTH[1], t1),
+        (0.0, side * 0.5 * t0),
+        (0.0, side * 0.5 * t1),
+    )
+
+
+def instrument_models() -> dict[str, ObjectModel]:
+    """Meshes of one instrument's parts (:data:`INSTRUMENT_PARTS`), mm, each in its part frame."""
+    sx = WRIST_SIZE[0]
+    return {
+        "shaft": cylinder_mesh(
+            SHAFT_RADIUS, SHAFT_END - SHAFT_LENGTH, SHAFT_END, sides=24, max_segment=4.0
+        ),
+        "wrist": box_mesh(WRIST_SIZE, (WRIST_X0 + 0.5 * sx, 0.0, 0.0)),
+        "yaw": cylinder_mesh(HUB_RADIUS, -0.5 * HUB_LENGTH, 0.5 * HUB_LENGTH, sides=20),
+        "jaw1": jaw_mesh(+1),
+        "jaw2": jaw_mesh(-1),
+    }
+
+
+def instrument_part_poses(q: ArrayLike, jaw: float, T_world_base: F64) -> dict[str, F64]:
+    """World poses (4×4, m) of one instrument's part frames.
+
+    Args:
+        q: (6,) PSM joints (rad, insertion in m).
+        jaw: Jaw opening angle, rad (total angle between the jaws).
+        T_world_base: ``T_world_base`` of the arm (its RCM frame).
+
+    Returns:
+        ``T_world_part`` by part name (:data:`INSTRUMENT_PARTS`).
+    """
+    frames = psm_link_frames(q)
+    roll, pitch, yaw, tip = (T_world_base @ frames[k] for k in (3, 4, 5, 6))
+    half = np.eye(4)
+    half[:3, :3] = rot_x(-0.5 * jaw)
+    jaw1 = tip @ half
+    half[:3, :3] = rot_x(0.5 * jaw)
+    jaw2 = tip @ half
+    return {"shaft": roll, "wrist": pitch, "yaw": yaw, "jaw1": jaw1, "jaw2": jaw2}
+
+
+# ------------------------------------------------------------------------------ phantom
+
+
+def pad_height(x: ArrayLike, y: ArrayLike) -> F64:
+    """Height (mm) of the pad's top surface above z = 0 at (x, y) mm (ridges +, incisions −)."""
+    x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+    h = 0.25 * np.sin(x / 6.3 + 0.7) * np.sin(y / 5.1 + 0.3)  # gentle undulation
+    for yc in RIDGES_Y:
+        d = np.abs(y - yc) / RIDGE_HALF_WIDTH
+        h = h + np.where(d < 1.0, 0.5 * RIDGE_HEIGHT * (1.0 + np.cos(np.pi * d)), 0.0)
+    # Incisions: flat-bottomed slots with walls 0.1 mm wide, so nearly vertical.
+    along = np.clip((INCISION_HALF_LENGTH - np.abs(y)) / 0.1, 0.0, 1.0)
+    for xc in INCISIONS_X:
+        across = np.clip((INCISION_HALF_WIDTH - np.abs(x - xc)) / 0.1, 0.0, 1.0)
+        h = h - INCISION_DEPTH * across * along
+    return h
+
+
+def _pad_grid() -> tuple[F64, F64]:
+    """Grid lines (x, y), mm: 1 mm spacing, finer on the ridges, and on every incision edge."""
+    hx, hy = 0.5 * PAD_SIZE[0], 0.5 * PAD_SIZE[1]
+    xs = [np.arange(-hx, hx + 1e-9, 1.0)]
+    for xc in INCISIONS_X:
+        w = INCISION_HALF_WIDTH
+        xs.append(np.array([xc - w, xc - w + 0.1, xc + w - 0.1, xc + w]))
+    ys = [np.arange(-hy, hy + 1e-9, 1.0)]
+    for yc in RIDGES_Y:
+        ys.append(np.arange(yc - RIDGE_HALF_WIDTH, yc + RIDGE_HALF_WIDTH + 1e-9, 0.5))
+    ys.append(np.array([-INCISION_HALF_LENGTH, -INCISION_HALF_LENGTH + 0.1]))
+    ys.append(np.array([INCISION_HALF_LENGTH - 0.1, INCISION_HALF_LENGTH]))
+    # Unique to 1 µm (floating-point twins would make degenerate triangles).
+    gx = np.unique(np.round(np.concatenate(xs), 6))
+    gy = np.unique(np.round(np.concatenate(ys), 6))
+    return gx, gy
+
+
+def pad_mesh() -> tuple[ObjectModel, F64]:
+    """The suturing pad: textured top height field plus side walls (no bottom), mm.
+
+    Returns:
+        The mesh in the world frame (the pad is static) and its (V, 2) texture coordinates.
+    """
+    gx, gy = _pad_grid()
+    xx, yy = np.meshgrid(gx, gy)  # (ny, nx)
+    zz = pad_height(xx, yy)
+    dzdy, dzdx = np.gradient(zz, gy, gx)
+    n = np.stack([-dzdx, -dzdy, np.ones_like(zz)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    ny, nx = xx.shape
+    hx, hy = 0.5 * PAD_SIZE[0], 0.5 * PAD_SIZE[1]
+    top_pts = np.stack([xx, yy, zz], axis=-1).reshape(-1, 3)
+    top_uv = np.stack([(xx + hx) / (2 * hx), (yy + hy) / (2 * hy)], axis=-1).reshape(-1, 2)
+    idx = np.arange(ny * nx).reshape(ny, nx)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    top_faces = np.concatenate(
+        [np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)]
+    )
+    top = ObjectModel(pts=top_pts, faces=top_faces, normals=n.reshape(-1, 3))
+
+    # Side walls: the boundary of the height field, straight down to the pad's bottom.
+    walls, wall_uvs = [], []
+    edges = (
+        (top_pts[idx[0, :]], np.array([0.0, -1.0, 0.0])),  # y = -hy, outward −y
+        (top_pts[idx[:, -1]], np.array([1.0, 0.0, 0.0])),  # x = +hx
+        (top_pts[idx[-1, ::-1]], np.array([0.0, 1.0, 0.0])),  # y = +hy
+        (top_pts[idx[::-1, 0]], np.array([-1.0, 0.0, 0.0])),  # x = -hx
+    )
+    for upper, normal in edges:
+        lower = upper.copy()
+        lower[:, 2] = -PAD_THICKNESS
+        m = len(upper)
+        j = np.arange(m - 1)
+        faces = np.concatenate(
+            [np.stack([j, m + j, m + j + 1], 1), np.stack([j, m + j + 1, j + 1], 1)]
+        )
+        walls.append(
+            ObjectModel(
+                pts=np.concatenate([upper, lower]),
+                faces=faces,
+                normals=np.repeat(normal[None], 2 * m, axis=0),
+            )
+        )
+        s = np.linspace(0.0, 0.999, m)
+        wall_uvs.append(
+            np.concatenate([np.stack([s, np.full(m, 0.02)], 1), np.stack([s, np.full(m, 0.1)], 1)])
+        )
+    model = _merge([top, *walls])
+    uvs = np.clip(np.concatenate([top_uv, *wall_uvs]), 0.0, 0.999)
+    return model, uvs
+
+
+def drape_mesh(cells: int = 25) -> tuple[ObjectModel, F64]:
+    """The drape: a square grid at the pad's bottom (z = −8 mm), facing up, mm, with uvs.
+
+    Args:
+        cells: Grid cells per side. Small triangles keep TinyRenderer fast (it tests every
+            pixel of a triangle's screen bounding box, twice when the triangle is clipped).
+    """
+    h = 0.5 * DRAPE_SIZE
+    g = np.linspace(-h, h, cells + 1)
+    xx, yy = np.meshgrid(g, g)
+    pts = np.stack([xx, yy, np.full_like(xx, -PAD_THICKNESS)], axis=-1).reshape(-1, 3)
+    idx = np.arange((cells + 1) ** 2).reshape(cells + 1, cells + 1)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    faces = np.concatenate(
+        [np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)]
+    )
+    model = ObjectModel(pts=pts, faces=faces, normals=np.tile([0.0, 0.0, 1.0], (len(pts), 1)))
+    uvs = np.clip((pts[:, :2] + h) / (2 * h), 0.0, 0.999)
+    return model, uvs
+
+
+def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], sigma: float) -> F64:
+    """Gaussian-filtered white noise with unit standard deviation."""
+    n = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
+    return (n / max(float(n.std()), 1e-6)).astype(np.float64)
+
+
+def skin_texture(seed: int = 0, size: tuple[int, int] = (1024, 768)) -> NDArray[np.uint8]:
+    """Pink-red tissue texture of the pad top, (H, W, 3) uint8 RGB.
+
+    Column c maps to texture u = c / W and row r to v = 1 − r / H (OpenGL's convention, which
+    pybullet follows: the image's top row is v = 1), i.e. to pad coordinates
+    x = (u − 0.5) · 80 mm, y = (v − 0.5) · 60 mm.
+
+    Args:
+        seed: Seed of the noise and the vessel pattern.
+        size: (width, height) in texels.
+    """
+    rng = np.random.default_rng(seed)
+    w, h = size
+    shade = (
+        1.0
+        + 0.05 * _smooth_noise(rng, (h, w), 60)
+        + 0.04 * _smooth_noise(rng, (h, w), 15)
+        + 0.03 * _smooth_noise(rng, (h, w), 3)
+        + 0.02 * rng.standard_normal((h, w))
+    )
+    # Redness varies over the pad: more saturated (less green/blue) patches.
+    red = np.clip(0.5 + 0.35 * _smooth_noise(rng, (h, w), 30), 0.0, 1.0)
+    img = np.empty((h, w, 3))
+    img[..., 0] = (0.88 + 0.04 * red) * shade
+    img[..., 1] = (0.60 - 0.16 * red) * shade
+    img[..., 2] = (0.58 - 0.14 * red) * shade
+    # Capillaries: random-walk curves in dark red, softened.
+    vessels = np.zeros((h, w), np.float32)
+    for _ in range(14):
+        p = rng.uniform([0, 0], [w, h])
+        ang = rng.uniform(0, 2 * np.pi)
+        pts = []
+        for _ in range(int(rng.integers(20, 60))):
+            ang += rng.normal(0.0, 0.25)
+            p = p + 8.0 * np.array([np.cos(ang), np.sin(ang)])
+            pts.append(p.copy())
+        width = int(rng.integers(1, 4))
+        cv2.polylines(vessels, [np.asarray(pts, np.int32)], False, 1.0, width, cv2.LINE_AA)
+    vessels = cv2.GaussianBlur(vessels, (0, 0), 1.2)[..., None].astype(np.float64)
+    img = img * (1 - 0.45 * vessels) + 0.45 * vessels * np.array([0.55, 0.12, 0.15])
+    # Incisions: dark red walls and bottoms.
+    x = (np.arange(w) + 0.5) / w * PAD_SIZE[0] - 0.5 * PAD_SIZE[0]
+    y = 0.5 * PAD_SIZE[1] - (np.arange(h) + 0.5) / h * PAD_SIZE[1]  # row 0 is the +y edge
+    cut = pad_height(x[None, :], y[:, None]) < -0.5
+    img[cut] = img[cut] * 0.35 + 0.65 * np.array([0.45, 0.10, 0.11])
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def drape_texture(seed: int = 0, size: int = 1024) -> NDArray[np.uint8]:
+    """Blue-green surgical drape texture, (size, size, 3) uint8 RGB (weave and folds)."""
+    rng = np.random.default_rng(seed + 1)
+    i = np.arange(size)
+    weave = 0.5 * (np.cos(np.pi * i)[:, None] + np.cos(np.pi * i)[None, :])
+    shade = (
+        1.0
+        + 0.10 * _smooth_noise(rng, (size, size), 40)
+        + 0.03 * weave
+        + 0.03 * rng.standard_normal((size, size))
+    )
+    img = np.array([0.20, 0.47, 0.52])[None, None, :] * shade[..., None]
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+# -------------------------------------------------------------------------------- scene
+
+
+def build_scene(
+    needle: NeedleSpec | None = None,
+    layout: SceneLayout | None = None,
+    *,
+    annotate_instruments: bool = False,
+    texture_seed: int = 0,
+) -> SceneAssets:
+    """All parts of the suturing scene.
+
+    Args:
+        needle: Needle geometry (default :class:`~bopsurg.needle.NeedleSpec`).
+        layout: Robot layout (default :class:`~bopsurg.generators.kinematics.SceneLayout`).
+        annotate_instruments: Also annotate the instruments' wrists and jaws.
+        texture_seed: Seed of the procedural textures.
+    """
+    layout = layout or SceneLayout()
+    parts: dict[str, VisualPart] = {}
+    # The needle mesh is consistently wound outwards, so back-face culling loses nothing.
+    parts["needle"] = VisualPart("needle", needle_mesh(needle), NEEDLE_RGBA, METAL_SPECULAR)
+    looks = {
+        "shaft": (SHAFT_RGBA, MATTE_SPECULAR),
+        "wrist": (METAL_RGBA, METAL_SPECULAR),
+        "yaw": (METAL_RGBA, METAL_SPECULAR),
+        "jaw1": (JAW_RGBA, METAL_SPECULAR),
+        "jaw2": (JAW_RGBA, METAL_SPECULAR),
+    }
+    for arm in ARMS:
+        for part, model in instrument_models().items():
+            rgba, spec = looks[part]
+            parts[f"{arm}_{part}"] = VisualPart(f"{arm}_{part}", model, rgba, spec)
+    pad, pad_uv = pad_mesh()
+    parts["phantom"] = VisualPart(
+        "phantom", pad, (1.0, 1.0, 1.0, 1.0), MATTE_SPECULAR, uvs=pad_uv, texture="skin"
+    )
+    drape, drape_uv = drape_mesh()
+    parts["drape"] = VisualPart(
+        "drape", drape, (1.0, 1.0, 1.0, 1.0), MATTE_SPECULAR, uvs=drape_uv, texture="drape"
+    )
+    annotated = ["needle"]
+    if annotate_instruments:
+        annotated += [f"{arm}_{part}" for arm in ARMS for part in ANNOTATED_INSTRUMENT_PARTS]
+    textures = {"skin": skin_texture(texture_seed), "drape": drape_texture(texture_seed)}
+    return SceneAssets(parts=parts, textures=textures, annotated=tuple(annotated), layout=layout)
+
+
+def part_poses(
+    layout: SceneLayout,
+    psm_joints: Mapping[str, ArrayLike],
+    jaws: Mapping[str, float],
+    needle_pose: F64 | None = None,
+) -> dict[str, F64]:
+    """World poses (4×4, m) of the moving parts for a robot state.
+
+    Args:
+        layout: Robot layout.
+        psm_joints: (6,) joints by arm name (:data:`ARMS`); arms missing here are left out.
+        jaws: Jaw angle by arm name, rad (0 when missing).
+        needle_pose: ``T_world_needle``, or None to leave the needle out.
+
+    Raises:
+        ValueError: An unknown arm name.
+    """
+    out: dict[str, F64] = {}
+    for arm, q in psm_joints.items():
+        if arm not in ARMS:
+            raise ValueError(f"unknown arm {arm!r}; expected one of {ARMS}")
+        base = layout.psm_base(ARMS.index(arm))
+        poses = instrument_part_poses(q, float(jaws.get(arm, 0.0)), base)
+        out.update({f"{arm}_{k}": v for k, v in poses.items()})
+    if needle_pose is not None:
+        out["needle"] = np.asarray(needle_pose, dtype=np.float64)
+    return out
