@@ -161,15 +161,17 @@ def rotation_about_axis(axis: ArrayLike, angle: float) -> F64:
     return Rm
 
 
-def depth_to_distance(depth: ArrayLike, K: ArrayLike) -> F64:
+def depth_to_distance(depth: ArrayLike, K: ArrayLike, origin: tuple[int, int] = (0, 0)) -> F64:
     """Convert a depth image (z, mm) to a distance image (‖X‖ from the camera centre, mm).
 
     Uses the integer pixel index (no +0.5), as ``bop_toolkit_lib.misc.depth_im_to_dist_im_fast``.
     Pixels with depth 0 stay 0.
 
     Args:
-        depth: (H, W) depth in mm.
-        K: (3, 3) camera matrix.
+        depth: (H, W) depth in mm, or a window of a larger image.
+        K: (3, 3) camera matrix of the full image.
+        origin: (row, column) of the window's top-left pixel in the full image; the values
+            are bit-identical to those of the full-image conversion.
 
     Returns:
         (H, W) float64 distances in mm.
@@ -177,8 +179,9 @@ def depth_to_distance(depth: ArrayLike, K: ArrayLike) -> F64:
     d = np.asarray(depth)
     Km = np.asarray(K, dtype=np.float64)
     h, w = d.shape
-    xs = (np.arange(w) - Km[0, 2]) / np.float64(Km[0, 0])
-    ys = (np.arange(h) - Km[1, 2]) / np.float64(Km[1, 1])
+    r0, c0 = origin
+    xs = (np.arange(c0, c0 + w) - Km[0, 2]) / np.float64(Km[0, 0])
+    ys = (np.arange(r0, r0 + h) - Km[1, 2]) / np.float64(Km[1, 1])
     return np.sqrt(
         np.multiply(xs[None, :], d) ** 2
         + np.multiply(ys[:, None], d) ** 2

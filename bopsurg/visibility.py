@@ -102,13 +102,22 @@ def instance_visibility(
             field="depth_model_large",
         )
     d_model = d_large[h : 2 * h, w : 2 * w]
-    dist_model = depth_to_distance(d_model, K)
-    dist_test = depth_to_distance(d_test, K)
-    visib = estimate_visib_mask(dist_test, dist_model, delta, mode="bop19")
+    mask = d_model > 0
+    visib = np.zeros((h, w), dtype=bool)
+    # Distances only where the object projects: elementwise, so the same values (bit for
+    # bit) as converting the whole images, at a fraction of the cost for small objects.
+    rows = np.flatnonzero(mask.any(axis=1))
+    px_valid = 0
+    if rows.size:
+        cols = np.flatnonzero(mask.any(axis=0))
+        win = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        origin = (int(rows[0]), int(cols[0]))
+        dist_model = depth_to_distance(d_model[win], K, origin)
+        dist_test = depth_to_distance(d_test[win], K, origin)
+        visib[win] = estimate_visib_mask(dist_test, dist_model, delta, mode="bop19")
+        px_valid = int(np.count_nonzero(dist_test[mask[win]] > 0))
     silhouette_large = d_large > 0
-    mask = dist_model > 0
     px_all = int(np.count_nonzero(silhouette_large))
-    px_valid = int(np.count_nonzero(dist_test[mask] > 0))
     px_visib = int(np.count_nonzero(visib))
     visible = px_visib > 0
     info = GtInfo(
