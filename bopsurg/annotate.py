@@ -157,14 +157,34 @@ def annotate_scene(
     return count
 
 
+_WORKER: dict = {}
+
+
+def _worker_init(root: str, split: str, split_type: str | None, renderer_name: str | None) -> None:
+    from bopsurg.plugins import load_plugin
+
+    _WORKER["dataset"] = BopDataset(root, split, split_type=split_type)
+    _WORKER["renderer"] = load_plugin("renderer", renderer_name)()
+
+
+def _worker_scene(job: tuple[int, tuple[int, int], float]) -> tuple[int, int, int]:
+    scene_id, size, delta = job
+    dataset: BopDataset = _WORKER["dataset"]
+    scene = dataset.scene(scene_id)
+    n = annotate_scene(dataset, scene, _WORKER["renderer"], size, delta=delta)
+    return scene_id, n, len(scene.gt)
+
+
 def annotate_dataset(
     root: str | Path,
     split: str = "test",
     *,
-    renderer: DepthRenderer,
+    renderer: DepthRenderer | None = None,
+    renderer_name: str | None = None,
     split_type: str | None = None,
     delta: float = DEFAULT_DELTA_MM,
     overwrite: bool = False,
+    workers: int = 1,
     progress: bool = True,
 ) -> AnnotateReport:
     """Annotate every scene of a split (see the module docstring).
@@ -172,13 +192,19 @@ def annotate_dataset(
     Args:
         root: Dataset root.
         split: Split folder name.
-        renderer: Depth renderer plugin instance.
+        renderer: Depth renderer instance (one process); default: the plugin
+            ``renderer_name``.
+        renderer_name: Depth renderer plugin name (default: the first installed); each
+            worker process loads its own.
         split_type: Split type suffix (``pbr`` → ``train_pbr``).
         delta: Visibility tolerance δ, mm (BOP: 15; 5 for ITODD and PBR; 1 for fine
             instruments with exact depth).
         overwrite: Redo scenes that already have scene_gt_info.json.
+        workers: Processes, each annotating whole scenes (scenes never share files).
         progress: Show a progress bar over images.
     """
+    if workers < 1:
+        raise DatasetError("must be >= 1", field="workers")
     dataset = BopDataset(root, split, split_type=split_type)
     size, with_depth = _validate(dataset)
     if not with_depth:
@@ -195,13 +221,28 @@ def annotate_dataset(
     n_images = sum(len(s.gt) for s in todo)
     instances = 0
     with tqdm(total=n_images, unit="img", desc="annotate", disable=not progress) as bar:
-        for scene in todo:
-            instances += annotate_scene(dataset, scene, renderer, size, delta=delta)
-            bar.update(len(scene.gt))
+        if workers == 1 or len(todo) <= 1:
+            if renderer is None:
+                from bopsurg.plugins import load_plugin
+
+                renderer = load_plugin("renderer", renderer_name)()
+            for scene in todo:
+                instances += annotate_scene(dataset, scene, renderer, size, delta=delta)
+                bar.update(len(scene.gt))
+        else:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")
+            init = (str(root), split, split_type, renderer_name)
+            jobs = [(s.scene_id, size, delta) for s in todo]
+            with ctx.Pool(workers, initializer=_worker_init, initargs=init) as pool:
+                for _, n, images in pool.imap_unordered(_worker_scene, jobs):
+                    instances += n
+                    bar.update(images)
     record = {
         "delta_mm": delta,
         "visibility": "depth images" if with_depth else "GT instances rendered together",
-        "renderer": type(renderer).__name__,
+        "renderer": type(renderer).__name__ if renderer is not None else renderer_name,
     }
     write_text(dataset.split_dir / RECORD_NAME, json.dumps(record, indent=2) + "\n")
     targets = Path(root) / "test_targets_bop19.json"

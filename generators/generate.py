@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bopsurg.generators.replay import (
+    AmodalRenderer,
     GenerateSettings,
     ReplayResult,
     ReplayUnit,
@@ -69,15 +70,32 @@ _WORKER_BACKEND: object | None = None
 _WORKER_QUEUE: object | None = None
 
 
-def _worker_init(settings: GenerateSettings, progress_queue: object) -> None:
-    global _WORKER_BACKEND, _WORKER_QUEUE
+_WORKER_AMODAL: AmodalRenderer | None = None
+
+
+def make_amodal(settings: GenerateSettings, out: str | Path) -> AmodalRenderer | None:
+    """The object-alone renderer of the settings (None: the backend's own)."""
+    if settings.renderer is None:
+        return None
+    return AmodalRenderer(load_plugin("renderer", settings.renderer)(), Path(out) / "models")
+
+
+def _worker_init(settings: GenerateSettings, out: str, progress_queue: object) -> None:
+    global _WORKER_BACKEND, _WORKER_QUEUE, _WORKER_AMODAL
     _WORKER_BACKEND = make_backend(settings)
+    _WORKER_AMODAL = make_amodal(settings, out)
     _WORKER_QUEUE = progress_queue
 
 
 def _worker_run(unit: ReplayUnit) -> ReplayResult:
     q = _WORKER_QUEUE
-    return run_replay(unit, _WORKER_BACKEND, _read_bag, on_frame=q.put)  # type: ignore[arg-type, union-attr]
+    return run_replay(
+        unit,
+        _WORKER_BACKEND,  # type: ignore[arg-type]
+        _read_bag,
+        amodal=_WORKER_AMODAL,
+        on_frame=q.put,  # type: ignore[union-attr]
+    )
 
 
 # -----------------------------------------------------------------------------------------
@@ -187,16 +205,23 @@ def generate_dataset(
     try:
         if workers == 1:
             backend = make_backend(settings)
+            amodal = make_amodal(settings, out)
             try:
                 for unit in units:
-                    res = run_replay(unit, backend, _read_bag, on_frame=bar.update)  # type: ignore[arg-type]
+                    res = run_replay(
+                        unit,
+                        backend,  # type: ignore[arg-type]
+                        _read_bag,
+                        amodal=amodal,
+                        on_frame=bar.update,
+                    )
                     # frames a resumed run did not need to render
                     bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
                     results.append(res)
             finally:
                 backend.close()  # type: ignore[attr-defined]
         else:
-            results = _run_pool(units, settings, workers, bar)
+            results = _run_pool(units, settings, str(out), workers, bar)
             for unit, res in zip(units, results, strict=True):
                 bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
     finally:
@@ -212,12 +237,14 @@ def generate_dataset(
 
 
 def _run_pool(
-    units: Sequence[ReplayUnit], settings: GenerateSettings, workers: int, bar: tqdm
+    units: Sequence[ReplayUnit], settings: GenerateSettings, out: str, workers: int, bar: tqdm
 ) -> list[ReplayResult]:
     ctx = mp.get_context("spawn")  # fresh interpreters: no inherited renderer state
     progress_queue = ctx.Queue()
     results: list[ReplayResult] = []
-    with ctx.Pool(workers, initializer=_worker_init, initargs=(settings, progress_queue)) as pool:
+    with ctx.Pool(
+        workers, initializer=_worker_init, initargs=(settings, out, progress_queue)
+    ) as pool:
         pending = pool.map_async(_worker_run, units, chunksize=1)
         while True:
             try:

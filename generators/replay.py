@@ -38,6 +38,7 @@ from bopsurg._version import __version__
 from bopsurg.atomic import write_text
 from bopsurg.bop.images import save_depth, save_mask, save_rgb
 from bopsurg.bop.jsonio import load_json
+from bopsurg.bop.models import ObjectModel, load_ply
 from bopsurg.bop.scene import (
     CameraInfo,
     GtInfo,
@@ -50,6 +51,7 @@ from bopsurg.bop.scene import (
     save_scene_gt_info,
 )
 from bopsurg.errors import InputError
+from bopsurg.plugins import DepthRenderer
 from bopsurg.visibility import instance_visibility
 
 log = logging.getLogger(__name__)
@@ -79,6 +81,8 @@ class GenerateSettings:
         topic_map: Topic map of the bags (name or TOML path).
         backend: Backend plugin name.
         backend_config: ``load_scene`` config of the backend.
+        renderer: Depth renderer plugin for the object-alone renders (the one
+            ``bopsurg annotate`` uses); ``None`` uses the backend's own.
         rgb_format: ``png`` (BOP real) or ``jpg`` (BOP pbr).
     """
 
@@ -95,6 +99,7 @@ class GenerateSettings:
     topic_map: str = "crtk"
     backend: str = "pybullet"
     backend_config: dict = field(default_factory=dict)
+    renderer: str | None = "pybullet"
     rgb_format: str = "png"
 
     def to_json(self) -> dict:
@@ -178,6 +183,28 @@ def _pose_mm(T_world_cam: np.ndarray, T_world_obj: np.ndarray) -> tuple[np.ndarr
     return T[:3, :3].copy(), T[:3, 3] * 1000.0
 
 
+class AmodalRenderer:
+    """Object-alone depth from the dataset's written models, through a depth renderer plugin.
+
+    Args:
+        renderer: A :class:`bopsurg.plugins.DepthRenderer`.
+        models_dir: The dataset's ``models/`` folder (read back exactly as annotate reads it).
+    """
+
+    def __init__(self, renderer: DepthRenderer, models_dir: str | Path) -> None:
+        self.renderer = renderer
+        self.models_dir = Path(models_dir)
+        self._models: dict[int, ObjectModel] = {}
+
+    def render(
+        self, obj_id: int, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int
+    ) -> np.ndarray:
+        """(height, width) depth in mm of object ``obj_id`` at (R, t mm)."""
+        if obj_id not in self._models:
+            self._models[obj_id] = load_ply(self.models_dir / f"obj_{obj_id:06d}.ply")
+        return self.renderer.render_depth(self._models[obj_id], R, t, K, width, height)
+
+
 class _SceneFiles:
     """The scene's JSON state, loaded for resuming and saved after every frame."""
 
@@ -212,6 +239,7 @@ def run_replay(
     backend: RenderBackend,
     recording_loader: Callable[[str, str], object],
     *,
+    amodal: AmodalRenderer | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> ReplayResult:
     """Render and write one replay (resuming where a killed run stopped).
@@ -220,6 +248,9 @@ def run_replay(
         unit: The replay.
         backend: A backend with the scene loaded (see :meth:`RenderBackend.load_scene`).
         recording_loader: ``(bag_path, topic_map) -> Recording`` (``bags.read_bag``).
+        amodal: Renders each GT instance alone from its *written* model and pose, exactly as
+            ``bopsurg annotate`` will, so re-annotating the files reproduces the generator's
+            masks pixel for pixel; without it the backend's own object-alone render is used.
         on_frame: Called with 1 after each rendered frame (progress).
 
     Returns:
@@ -269,15 +300,16 @@ def run_replay(
         # The depth as it will be read back from the PNG: visibility is computed on it.
         depth_units = np.rint(frame.depth / settings.depth_scale)
         depth_saved = depth_units * settings.depth_scale
-        visib = [
-            instance_visibility(
-                depth_saved,
-                backend.render_object_depth(name, camera_large),
-                K,
-                delta=settings.delta_mm,
-            )
-            for name, _ in objects
-        ]
+        poses = [_pose_mm(T_world_cam, backend.object_pose(name)) for name, _ in objects]
+        visib = []
+        for (name, obj_id), (R, t) in zip(objects, poses, strict=True):
+            if amodal is not None:
+                large = amodal.render(
+                    obj_id, R, t, camera_large.K, camera_large.width, camera_large.height
+                )
+            else:
+                large = backend.render_object_depth(name, camera_large)
+            visib.append(instance_visibility(depth_saved, large, K, delta=settings.delta_mm))
         keep = visib[0].info.visib_fract >= settings.min_visib
         if keep:
             _write_frame(unit, k, frame, depth_units, visib)
@@ -290,11 +322,10 @@ def run_replay(
                 R_w2c=np.linalg.inv(T_world_cam)[:3, :3],
                 t_w2c=np.linalg.inv(T_world_cam)[:3, 3] * 1000.0,
             )
-            gts = []
-            for name, obj_id in objects:
-                R, t = _pose_mm(T_world_cam, backend.object_pose(name))
-                gts.append(GtPose(obj_id=obj_id, R=R, t=t))
-            files.gt[k] = gts
+            files.gt[k] = [
+                GtPose(obj_id=obj_id, R=R, t=t)
+                for (_, obj_id), (R, t) in zip(objects, poses, strict=True)
+            ]
             files.gt_info[k] = [v.info for v in visib]
         files.record["next_frame"] = k + 1
         if keep or k == len(times) - 1:
@@ -324,6 +355,7 @@ def _write_frame(unit: ReplayUnit, k: int, frame, depth_units: np.ndarray, visib
 __all__ = [
     "DEFAULT_K",
     "NEEDLE",
+    "AmodalRenderer",
     "GenerateSettings",
     "ReplayDraw",
     "ReplayResult",

@@ -45,6 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "synthetic depth of thin instruments)",
     )
     p.add_argument("--renderer", default=None, help="depth renderer plugin (default: first)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="redo scenes already annotated")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=run)
@@ -52,11 +53,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Annotate and report."""
-    renderer = load_plugin("renderer", args.renderer)()
+    load_plugin("renderer", args.renderer)  # fail early, with a one-line hint, if missing
     report = annotate_dataset(
         args.dataset,
         args.split,
-        renderer=renderer,
+        renderer_name=args.renderer,
+        workers=args.workers,
         split_type=args.split_type,
         delta=args.delta,
         overwrite=args.overwrite,

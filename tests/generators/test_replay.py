@@ -35,7 +35,7 @@ def _tree_digest(root: Path) -> dict[str, str]:
     }
 
 
-SETTINGS = GenerateSettings(replays=2, period=0.5, seed=7, min_visib=0.2)
+SETTINGS = GenerateSettings(replays=2, period=0.5, seed=7, min_visib=0.2, renderer=None)
 
 
 def test_frame_times_are_exact_multiples():
