@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import time
 
 from bopsurg.errors import InputError
@@ -61,6 +62,38 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--delta", type=float, default=d.delta_mm, help="visibility tolerance, mm (default: 1)"
     )
     p.add_argument("--topic-map", default=d.topic_map, help="topic map: crtk, ambf or a TOML file")
+    p.add_argument("--width", type=int, default=d.width, help="image width, px (default: 640)")
+    p.add_argument("--height", type=int, default=d.height, help="image height, px (default: 480)")
+    p.add_argument(
+        "--fov",
+        type=float,
+        default=1.2,
+        help="vertical field of view, rad (default: 1.2, the simulator's endoscope); "
+        "K = [[f, 0, W/2], [0, f, H/2], [0, 0, 1]] with f = H / (2 tan(fov/2))",
+    )
+    p.add_argument(
+        "--K",
+        default=None,
+        metavar="FX,FY,CX,CY",
+        help="explicit intrinsics in px (overrides --fov)",
+    )
+    p.add_argument(
+        "--needle-arc",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="needle arc incl. the tapered tip, degrees (default: 128.5; 135 = 3/8 circle, "
+        "180 = 1/2 circle)",
+    )
+    p.add_argument(
+        "--needle-radius", type=float, default=None, metavar="MM", help="centre-line radius, mm"
+    )
+    p.add_argument(
+        "--needle-wire", type=float, default=None, metavar="MM", help="wire diameter, mm"
+    )
+    p.add_argument(
+        "--rgb-format", choices=("png", "jpg"), default=d.rgb_format, help="rgb file format"
+    )
     p.add_argument("--stereo", action="store_true", help="also render the right camera")
     p.add_argument(
         "--annotate-instruments",
@@ -73,6 +106,44 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _intrinsics(args: argparse.Namespace) -> tuple[tuple[float, float, float], ...]:
+    if args.width < 1 or args.height < 1:
+        raise InputError("must be >= 1 px", field="--width/--height")
+    if args.K:
+        try:
+            fx, fy, cx, cy = (float(v) for v in args.K.split(","))
+        except ValueError:
+            raise InputError("expected four numbers FX,FY,CX,CY", field="--K") from None
+        if fx <= 0 or fy <= 0:
+            raise InputError("focal lengths must be > 0", field="--K")
+    else:
+        if not 0 < args.fov < math.pi:
+            raise InputError("must be in (0, pi) rad", field="--fov")
+        fx = fy = (args.height / 2) / math.tan(args.fov / 2)
+        cx, cy = args.width / 2, args.height / 2
+    return ((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0))
+
+
+def _needle_config(args: argparse.Namespace) -> dict[str, float]:
+    from bopsurg.needle import NeedleSpec
+
+    cfg: dict[str, float] = {}
+    if args.needle_arc is not None:
+        tip = NeedleSpec.tip_deg
+        if not tip < args.needle_arc <= 360:
+            raise InputError(f"must be in ({tip}, 360] degrees", field="--needle-arc")
+        cfg["body_deg"] = args.needle_arc - tip
+    if args.needle_radius is not None:
+        if args.needle_radius <= 0:
+            raise InputError("must be > 0", field="--needle-radius")
+        cfg["arc_radius"] = args.needle_radius
+    if args.needle_wire is not None:
+        if args.needle_wire <= 0:
+            raise InputError("must be > 0", field="--needle-wire")
+        cfg["wire_diameter"] = args.needle_wire
+    return cfg
+
+
 def run(args: argparse.Namespace) -> int:
     """Generate the dataset and report what was written."""
     from bopsurg.generators.generate import generate_dataset
@@ -80,6 +151,13 @@ def run(args: argparse.Namespace) -> int:
 
     if args.period <= 0:
         raise InputError("must be > 0", field="--period")
+    backend_config: dict = {
+        "annotate_instruments": bool(args.annotate_instruments),
+        "renderer": args.renderer,
+    }
+    needle = _needle_config(args)
+    if needle:
+        backend_config["needle"] = needle
     settings = GenerateSettings(
         replays=args.replays,
         period=args.period,
@@ -89,10 +167,11 @@ def run(args: argparse.Namespace) -> int:
         stereo=args.stereo,
         topic_map=args.topic_map,
         backend=args.backend,
-        backend_config={
-            "annotate_instruments": bool(args.annotate_instruments),
-            "renderer": args.renderer,
-        },
+        backend_config=backend_config,
+        width=args.width,
+        height=args.height,
+        K=_intrinsics(args),
+        rgb_format=args.rgb_format,
     )
     t0 = time.perf_counter()
     report = generate_dataset(

@@ -1,0 +1,56 @@
+"""`bopsurg generate` options: intrinsics, resolution, needle geometry, bad values."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.images import image_size
+from bopsurg.cli.main import main
+
+pytest.importorskip("pybullet")
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bag") / "a.bag"
+    assert main(["record", "--out", str(path), "--seed", "2", "--duration", "2"]) == 0
+    return path
+
+
+def test_half_circle_needle_at_320x240_with_explicit_K(bag, tmp_path):
+    out = tmp_path / "ds"
+    args = ["generate", str(bag), "--out", str(out), "--replays", "1", "--period", "1"]
+    opts = ["--width", "320", "--height", "240", "--K", "180,180,160,120", "--needle-arc", "180"]
+    assert main([*args, *opts, "--min-visib", "0", "--no-progress"]) == 0
+    ds = BopDataset(out, "test")
+    diameter = ds.models_info[1]["diameter"]
+    assert 20.36 < diameter < 21.2  # half circle of radius 10.18 mm plus the wire
+    scene = ds.scene(1)
+    im_id = scene.im_ids[0]
+    assert image_size(scene.rgb_path(im_id)) == (320, 240)
+    assert scene.camera[im_id].K[0, 0] == 180.0
+    camera = json.loads((out / "camera.json").read_text())
+    assert (camera["width"], camera["height"], camera["cx"]) == (320, 240, 160.0)
+
+
+@pytest.mark.parametrize(
+    ("opts", "field"),
+    [
+        (["--K", "1,2,3"], "--K"),
+        (["--fov", "4"], "--fov"),
+        (["--needle-arc", "5"], "--needle-arc"),
+        (["--needle-wire", "-1"], "--needle-wire"),
+        (["--period", "0"], "--period"),
+    ],
+)
+def test_bad_options_are_one_line_errors(bag, tmp_path, capsys, opts, field):
+    code = main(["generate", str(bag), "--out", str(tmp_path / "ds"), *opts, "--no-progress"])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bopsurg: error:")
+    assert field in err
+    assert "\n" not in err
+    assert not (tmp_path / "ds").exists()
