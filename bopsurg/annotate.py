@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from bopsurg.atomic import write_text
+from bopsurg.atomic import remove_stale_temporaries, write_text
 from bopsurg.bop.dataset import BopDataset, BopScene
 from bopsurg.bop.images import image_size, load_depth, save_mask
 from bopsurg.bop.scene import GtInfo, save_scene_gt_info
@@ -126,6 +126,8 @@ def annotate_scene(
     """Write mask/, mask_visib/ and scene_gt_info.json of one scene; returns the instances."""
     width, height = size
     with_depth = _has_depth(scene)
+    for sub in ("mask", "mask_visib"):  # what a killed earlier run may have left
+        remove_stale_temporaries(scene.scene_dir / sub)
     infos: dict[int, list[GtInfo]] = {}
     count = 0
     for im_id in sorted(scene.gt):

@@ -46,3 +46,20 @@ def write_bytes(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+
+
+def remove_stale_temporaries(folder: str | Path) -> int:
+    """Delete temporary files that a killed writer left in ``folder`` (recursively).
+
+    Only call this on a folder no other process is writing to (e.g. a scene folder owned by
+    the current unit of work). Returns the number of files removed.
+    """
+    removed = 0
+    root = Path(folder)
+    if not root.is_dir():
+        return 0
+    for tmp in root.rglob(".*.tmp-*"):
+        if tmp.is_file():
+            tmp.unlink(missing_ok=True)
+            removed += 1
+    return removed

@@ -194,6 +194,9 @@ def generate_dataset(
         frames_per_bag.append(len(frame_times(rec.start, rec.end, settings.period)))  # type: ignore[attr-defined]
     total = sum(frames_per_bag) * settings.replays
     out = Path(out)
+    for folder in (out, out / "models"):  # leftovers of a killed driver (not scene folders)
+        for tmp in folder.glob(".*.tmp-*") if folder.is_dir() else ():
+            tmp.unlink(missing_ok=True)
     _write_dataset_files(out, split, bag_paths, settings)
     units = [
         ReplayUnit(b, i, r, str(out), split, settings)

@@ -35,7 +35,7 @@ from bopsurg.generators.kinematics import ecm_camera_pose
 from bopsurg.generators.viewpoints import ReplayDraw, draw_replay, light_in_world
 
 from bopsurg._version import __version__
-from bopsurg.atomic import write_text
+from bopsurg.atomic import remove_stale_temporaries, write_text
 from bopsurg.bop.images import save_depth, save_mask, save_rgb
 from bopsurg.bop.jsonio import load_json
 from bopsurg.bop.models import ObjectModel, load_ply
@@ -216,6 +216,8 @@ class _SceneFiles:
         self.record: dict = {}
 
     def load(self) -> None:
+        # A SIGKILL can leave a writer's temporary file behind; this unit owns the folder.
+        remove_stale_temporaries(self.dir)
         rec = self.dir / SCENE_RECORD
         if not rec.exists():
             return

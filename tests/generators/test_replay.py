@@ -98,6 +98,8 @@ def test_killed_replay_resumes_to_identical_bytes(fake, tmp_path):
         run_replay(unit, FakeBackend(), lambda p, m: FakeRecording(), on_frame=die_after_five)
     partial = killed / "test" / "000001"
     assert (partial / "bopsurg_scene.json").exists()
+    # what a SIGKILL in the middle of an atomic write leaves behind
+    (partial / "rgb" / ".000007.tmp-99999.png").write_bytes(b"")
     rep = gen.generate_dataset([fake], killed, settings=SETTINGS, progress=False)
     assert rep.frames_rendered < 2 * 9  # it resumed instead of starting over
     assert _tree_digest(clean) == _tree_digest(killed)
