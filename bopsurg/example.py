@@ -35,7 +35,7 @@ from bopsurg.bop.scene import (
 )
 from bopsurg.bop.targets import enumerate_targets, save_targets
 from bopsurg.geometry import project_pts
-from bopsurg.needle import NeedleSpec, needle_mesh
+from bopsurg.needle import NeedleSpec, needle_keypoints, needle_mesh
 from bopsurg.visibility import instance_visibility_from_masks
 
 log = logging.getLogger(__name__)
@@ -157,9 +157,8 @@ def write_example_dataset(out_dir: str | Path, spec: ExampleSpec | None = None) 
     root = out / "needle"
     model = needle_mesh(NeedleSpec())
     save_ply(root / "models" / f"obj_{NEEDLE_OBJ_ID:06d}.ply", model)
-    save_models_info(
-        root / "models" / "models_info.json", {NEEDLE_OBJ_ID: compute_model_info(model.pts)}
-    )
+    info = {**compute_model_info(model.pts), **needle_keypoints(model)}
+    save_models_info(root / "models" / "models_info.json", {NEEDLE_OBJ_ID: info})
     write_text(root / "camera.json", camera_json())
 
     est_rows: list[tuple[int, int, float, np.ndarray, np.ndarray, float]] = []

@@ -119,3 +119,15 @@ def needle_mesh(spec: NeedleSpec | None = None) -> ObjectModel:
     # them; the caps are already outward. Renderers that cull back faces need this right.
     faces = np.concatenate([tail, side_faces[:, ::-1], tip_faces]).astype(np.int64)
     return ObjectModel(pts=vertices, faces=faces, normals=normals)
+
+
+def needle_keypoints(model: ObjectModel) -> dict[str, list[float]]:
+    """``models_info`` extras of a :func:`needle_mesh` model: tip, tail (mm) and plane normal.
+
+    Used by the ambiguity analysis (``bopsurg.evaluation.ambiguity``); BOP readers ignore
+    unknown models_info keys.
+    """
+    return {
+        "keypoints": {"tip": model.pts[-1].tolist(), "tail": model.pts[0].tolist()},
+        "plane_normal": [0.0, 0.0, 1.0],
+    }

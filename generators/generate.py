@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from bopsurg.generators.backend import NEEDLE
 from bopsurg.generators.replay import (
     AmodalRenderer,
     GenerateSettings,
@@ -35,6 +36,7 @@ from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
 from bopsurg.bop.targets import enumerate_targets, save_targets
 from bopsurg.errors import InputError
+from bopsurg.needle import needle_keypoints
 from bopsurg.plugins import load_plugin
 
 log = logging.getLogger(__name__)
@@ -128,6 +130,8 @@ def _write_dataset_files(
             model = backend.object_model(name)  # type: ignore[attr-defined]
             save_ply(out / "models" / f"obj_{obj_id:06d}.ply", model)
             infos[obj_id] = compute_model_info(model.pts)
+            if name == NEEDLE:  # tip, tail and plane for the ambiguity analysis of eval
+                infos[obj_id].update(needle_keypoints(model))
         save_models_info(out / "models" / "models_info.json", infos)
     finally:
         backend.close()  # type: ignore[attr-defined]

@@ -35,6 +35,7 @@ from bopsurg.bop.results import PoseEstimates, average_time_per_image
 from bopsurg.bop.targets import Target
 from bopsurg.errors import BopsurgError, DatasetError
 from bopsurg.evaluation import bop19
+from bopsurg.evaluation.ambiguity import ambiguity_splits, instance_ambiguity
 from bopsurg.evaluation.matching import greedy_match, valid_gts_localization
 from bopsurg.evaluation.summary import paper_summary
 from bopsurg.evaluation.tables import GtTable, estimates_frame, load_gt_table, rank_within_groups
@@ -50,6 +51,7 @@ INSTANCE_METRICS = ("re", "te", "mssd", "mspd", "add", "adi")
 ERROR_COLUMNS = (
     "scene_id", "im_id", "obj_id", "gt_id", "score", "visib_fract",
     "re", "te", "mssd", "mspd", "add", "adi",
+    "tip_visible", "tail_visible", "view_angle_deg",
 )  # fmt: skip
 
 
@@ -356,8 +358,14 @@ def evaluate(
             f"unknown metric(s) {sorted(unknown)}; choose from {', '.join(INSTANCE_METRICS)}"
         )
     errors, gt_rows = _instance_matching(estimates, gt, models, instance_metrics)
+    amb = instance_ambiguity(dataset, gt_rows, gt.R, gt.t, gt.K)
+    gt_rows = gt_rows.join(amb)
+    # errors.csv rows carry the ambiguity of the GT they were matched to
+    key = ["scene_id", "im_id", "obj_id", "gt_id"]
+    errors = errors.merge(gt_rows[[*key, *amb.columns]], on=key, how="left")
     scores, curves = _bop19(estimates, gt, targets, models, dataset, renderer, vsd_delta, progress)
     summary = paper_summary(gt_rows, min_visib=min_visib)
+    summary["splits"] = ambiguity_splits(gt_rows[gt_rows["visib_fract"] >= min_visib])
     summary["estimates"] = len(estimates)
     summary["unmatched_estimates"] = int((errors["gt_id"] < 0).sum())
     return Evaluation(errors, gt_rows, summary, scores, curves)

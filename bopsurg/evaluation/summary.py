@@ -123,6 +123,17 @@ def format_table(summary: dict[str, object], scores: dict[str, float] | None = N
         f"AUC (0-{AUC_MAX_FRACTION:g} x diameter): ADD {summary['add_auc']:.3f}, "
         f"ADD-S {summary['adi_auc']:.3f}"
     )
+    splits = summary.get("splits")
+    if isinstance(splits, dict) and splits:
+        lines += ["", f"{'split':<28}{'N':>6}{'RE med':>9}{'TE med':>9}{'MSSD med':>10}"]
+        for split, groups in splits.items():
+            for label, st in groups.items():
+                if st["n"] == 0:
+                    continue
+                lines.append(
+                    f"{split + ': ' + label:<28}{st['n']:>6d}{st['re_median']:>9.2f}"
+                    f"{st['te_median']:>9.2f}{st['mssd_median']:>10.2f}"
+                )
     if scores:
         lines += ["", "BOP19 (reference toolkit semantics):"]
         for key, value in scores.items():

@@ -1,0 +1,172 @@
+"""Pose ambiguities of thin instruments, from the GT pose, the visible mask and the model.
+
+The paper explains its worst needle errors by two ambiguities: both the tip and the tail are
+hidden (nothing tells the needle's direction along its arc), and the needle seen edge-on (its
+silhouette degenerates to a line). For every GT instance this module computes:
+
+- ``tip_visible``, ``tail_visible``: whether the projection of the model's tip (tail) falls
+  on the instance's visible mask (any pixel of the 3×3 neighbourhood of the rounded
+  projection: the wire is only a few pixels wide); NaN when the mask is not available.
+  The keypoints come from ``models_info.json`` (``"keypoints": {"tip": [x, y, z], "tail":
+  [x, y, z]}`` in mm, written by bopsurg's generator); without them, the two vertices that
+  define the model's diameter stand in (tail = the one with the lower vertex index).
+- ``view_angle_deg``: the angle between the viewing ray to the model origin and the model's
+  plane, 0 = edge-on, 90 = seen face-on. The plane normal is ``"plane_normal"`` of
+  models_info, else the model's least-variance principal axis (z for the needle).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+from scipy.spatial.distance import pdist, squareform
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.images import load_mask
+from bopsurg.evaluation.summary import describe
+
+F64 = NDArray[np.float64]
+
+#: Bins of the split tables.
+VIEW_ANGLE_BINS = (
+    (0.0, 15.0, "edge-on <15°"),
+    (15.0, 45.0, "oblique 15-45°"),
+    (45.0, 90.01, "face-on >45°"),
+)
+VISIB_BINS = ((0.0, 0.5, "visib <0.5"), (0.5, 0.8, "visib 0.5-0.8"), (0.8, 1.01, "visib >=0.8"))
+
+
+def model_keypoints(model_info: Mapping, pts: F64) -> tuple[F64, F64]:
+    """(tip, tail) in the model frame, mm (see the module docstring)."""
+    kp = model_info.get("keypoints")
+    if isinstance(kp, Mapping) and "tip" in kp and "tail" in kp:
+        return np.asarray(kp["tip"], dtype=np.float64), np.asarray(kp["tail"], dtype=np.float64)
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        cand = np.sort(ConvexHull(pts).vertices)
+    except QhullError:
+        cand = np.arange(pts.shape[0])
+    d = squareform(pdist(pts[cand]))
+    i, j = np.unravel_index(np.argmax(d), d.shape)
+    a, b = sorted((int(cand[i]), int(cand[j])))
+    return pts[b].copy(), pts[a].copy()
+
+
+def model_plane_normal(model_info: Mapping, pts: F64) -> F64:
+    """Unit normal of the model's plane (models_info ``plane_normal`` or least-variance axis)."""
+    n = model_info.get("plane_normal")
+    if n is None:
+        centred = pts - pts.mean(axis=0)
+        _, vecs = np.linalg.eigh(centred.T @ centred)
+        n = vecs[:, 0]
+        n = n if n[np.argmax(np.abs(n))] > 0 else -n  # deterministic sign
+    n = np.asarray(n, dtype=np.float64)
+    return n / np.linalg.norm(n)
+
+
+def view_angle_deg(R: F64, t: F64, normal: F64) -> F64:
+    """Angle (deg) between the viewing rays to ``t`` (N, 3) and the planes with normal
+    ``R @ normal``: 0 = edge-on, 90 = face-on."""
+    n_cam = np.einsum("nij,j->ni", R, normal)
+    ray = t / np.linalg.norm(t, axis=1, keepdims=True)
+    s = np.abs(np.einsum("ni,ni->n", n_cam, ray))
+    return np.degrees(np.arcsin(np.clip(s, 0.0, 1.0)))
+
+
+def _on_mask(mask: NDArray[np.bool_], uv: F64) -> bool:
+    h, w = mask.shape
+    if not np.all(np.isfinite(uv)):
+        return False
+    u, v = int(np.rint(uv[0])), int(np.rint(uv[1]))
+    r0, r1, c0, c1 = max(v - 1, 0), min(v + 2, h), max(u - 1, 0), min(u + 2, w)
+    return r0 < r1 and c0 < c1 and bool(mask[r0:r1, c0:c1].any())
+
+
+def instance_ambiguity(
+    dataset: BopDataset, gt_rows: pd.DataFrame, gt_R: F64, gt_t: F64, gt_K: F64
+) -> pd.DataFrame:
+    """``tip_visible``, ``tail_visible``, ``view_angle_deg`` for each GT row.
+
+    Args:
+        dataset: The dataset (models, models_info, mask_visib files).
+        gt_rows: Rows with ``scene_id``, ``im_id``, ``gt_id``, ``obj_id``; masks are read only
+            for the rows given.
+        gt_R, gt_t, gt_K: (G, 3, 3), (G, 3) mm and (G, 3, 3) of the same rows.
+    """
+    n = len(gt_rows)
+    out = pd.DataFrame(
+        {
+            "tip_visible": np.full(n, np.nan),
+            "tail_visible": np.full(n, np.nan),
+            "view_angle_deg": np.full(n, np.nan),
+        },
+        index=gt_rows.index,
+    )
+    obj = gt_rows["obj_id"].to_numpy()
+    for obj_id in np.unique(obj):
+        sel = np.flatnonzero(obj == obj_id)
+        info = dataset.models_info[int(obj_id)]
+        pts = dataset.model(int(obj_id)).pts
+        tip, tail = model_keypoints(info, pts)
+        normal = model_plane_normal(info, pts)
+        out.iloc[sel, 2] = view_angle_deg(gt_R[sel], gt_t[sel], normal)
+        cam_pts = np.einsum("nij,kj->nki", gt_R[sel], np.stack([tip, tail])) + gt_t[sel][:, None, :]
+        uvw = np.einsum("nij,nkj->nki", gt_K[sel], cam_pts)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = uvw[..., :2] / uvw[..., 2:3]
+        uv[uvw[..., 2] <= 0] = np.nan  # behind the camera: not visible
+        rows = gt_rows.iloc[sel]
+        scene_ids = rows["scene_id"].to_numpy()
+        for k, row in enumerate(rows.itertuples(index=False)):
+            scene = dataset.scene(int(scene_ids[k]))
+            if not (scene.scene_dir / "mask_visib").is_dir():
+                continue
+            path = scene.mask_visib_path(int(row.im_id), int(row.gt_id))
+            if not path.exists():
+                continue
+            mask = load_mask(path)
+            out.iloc[sel[k], 0] = float(_on_mask(mask, uv[k, 0]))
+            out.iloc[sel[k], 1] = float(_on_mask(mask, uv[k, 1]))
+    return out
+
+
+def ambiguity_splits(rows: pd.DataFrame) -> dict[str, dict[str, dict[str, float]]]:
+    """The paper's statistics of RE, TE, MSSD split by ends visible, view angle, visibility.
+
+    Args:
+        rows: GT rows of the table population (visib ≥ min_visib) with ``re``, ``te``,
+            ``mssd``, ``tip_visible``, ``tail_visible``, ``view_angle_deg``, ``visib_fract``.
+
+    Returns:
+        ``{split: {group: {"n", "re_median", "te_median", "mssd_median", "mssd_mean"}}}``.
+    """
+    has = rows["re"].notna()
+    r = rows[has]
+    groups: dict[str, dict[str, pd.Series]] = {
+        "ends_visible": {},
+        "view_angle": {},
+        "visibility": {},
+    }
+    ends = r["tip_visible"].fillna(-1) + r["tail_visible"].fillna(-1)
+    known = r["tip_visible"].notna() & r["tail_visible"].notna()
+    for label, cond in (("both", ends == 2), ("one", ends == 1), ("none", ends == 0)):
+        groups["ends_visible"][label] = known & cond
+    for lo, hi, label in VIEW_ANGLE_BINS:
+        groups["view_angle"][label] = (r["view_angle_deg"] >= lo) & (r["view_angle_deg"] < hi)
+    for lo, hi, label in VISIB_BINS:
+        groups["visibility"][label] = (r["visib_fract"] >= lo) & (r["visib_fract"] < hi)
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for split, parts in groups.items():
+        out[split] = {}
+        for label, mask in parts.items():
+            g = r[mask.to_numpy()]
+            stats = {"n": len(g)}
+            for m in ("re", "te", "mssd"):
+                stats[f"{m}_median"] = describe(g[m].to_numpy())["median"]
+            stats["mssd_mean"] = describe(g["mssd"].to_numpy())["mean"]
+            out[split][label] = stats
+    return out
