@@ -16,13 +16,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from bopsurg.annotate import annotate_dataset
+from bopsurg.bop.dataset import BopDataset
 from bopsurg.generators.bags import write_bag
 from bopsurg.generators.generate import generate_dataset
 from bopsurg.generators.replay import GenerateSettings
 from bopsurg.generators.trajectory import synthesize_suturing
-
-from bopsurg.annotate import annotate_dataset
-from bopsurg.bop.dataset import BopDataset
 
 
 def strip(root: Path) -> None:

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from bopsurg.generators.bags import read_bag, write_bag
 from bopsurg.generators.generate import generate_dataset, make_backend
 from bopsurg.generators.kinematics import ecm_camera_pose

@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+
 from bopsurg.generators.backend import CameraSpec, LightSpec, SceneState
 from bopsurg.generators.depth_renderer import PyBulletDepthRenderer
 from bopsurg.generators.kinematics import ecm_camera_pose, pose, rot_z

@@ -70,14 +70,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from bopsurg.generators.backend import SceneState
-from bopsurg.generators.kinematics import (
-    ECM_JOINT_LIMITS,
-    ECM_JOINT_NAMES,
-    JAW_LIMITS,
-    PSM_JOINT_LIMITS,
-    PSM_JOINT_NAMES,
-)
 from numpy.typing import NDArray
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Writer1
@@ -87,6 +79,14 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 
 from bopsurg.errors import InputError
+from bopsurg.generators.backend import SceneState
+from bopsurg.generators.kinematics import (
+    ECM_JOINT_LIMITS,
+    ECM_JOINT_NAMES,
+    JAW_LIMITS,
+    PSM_JOINT_LIMITS,
+    PSM_JOINT_NAMES,
+)
 
 log = logging.getLogger(__name__)
 

@@ -7,10 +7,9 @@ import logging
 import time
 from pathlib import Path
 
+from bopsurg.errors import InputError
 from bopsurg.generators.bags import write_bag
 from bopsurg.generators.trajectory import synthesize_suturing
-
-from bopsurg.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -26,6 +26,10 @@ from types import TracebackType
 
 import numpy as np
 import pybullet as p
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from bopsurg.bop.models import ObjectModel
 from bopsurg.generators.pybullet_backend import (
     PIXEL_OFFSETS,
     depth_buffer_to_mm,
@@ -35,10 +39,6 @@ from bopsurg.generators.pybullet_backend import (
     view_matrix,
     write_obj,
 )
-from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
-
-from bopsurg.bop.models import ObjectModel
 
 log = logging.getLogger(__name__)
 

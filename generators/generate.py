@@ -17,6 +17,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from tqdm.auto import tqdm
+
+from bopsurg._version import __version__
+from bopsurg.atomic import write_text
+from bopsurg.bop.jsonio import load_json
+from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
+from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
+from bopsurg.bop.targets import enumerate_targets, save_targets
+from bopsurg.errors import InputError
 from bopsurg.generators.backend import NEEDLE
 from bopsurg.generators.replay import (
     AmodalRenderer,
@@ -27,15 +36,6 @@ from bopsurg.generators.replay import (
     frame_times,
     run_replay,
 )
-from tqdm.auto import tqdm
-
-from bopsurg._version import __version__
-from bopsurg.atomic import write_text
-from bopsurg.bop.jsonio import load_json
-from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
-from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
-from bopsurg.bop.targets import enumerate_targets, save_targets
-from bopsurg.errors import InputError
 from bopsurg.needle import needle_keypoints
 from bopsurg.plugins import load_plugin
 
@@ -67,19 +67,17 @@ def make_backend(settings: GenerateSettings) -> object:
     return backend
 
 
-# -- worker processes ---------------------------------------------------------------------
-_WORKER_BACKEND: object | None = None
-_WORKER_QUEUE: object | None = None
-
-
-_WORKER_AMODAL: AmodalRenderer | None = None
-
-
 def make_amodal(settings: GenerateSettings, out: str | Path) -> AmodalRenderer | None:
     """The object-alone renderer of the settings (None: the backend's own)."""
     if settings.renderer is None:
         return None
     return AmodalRenderer(load_plugin("renderer", settings.renderer)(), Path(out) / "models")
+
+
+# -- worker processes: one backend and one object-alone renderer per process ---------------
+_WORKER_BACKEND: object | None = None
+_WORKER_AMODAL: AmodalRenderer | None = None
+_WORKER_QUEUE: object | None = None
 
 
 def _worker_init(settings: GenerateSettings, out: str, progress_queue: object) -> None:

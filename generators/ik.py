@@ -22,6 +22,9 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from bopsurg.errors import InputError
 from bopsurg.generators.kinematics import (
     L_PITCH2YAW,
     L_RCC,
@@ -30,9 +33,6 @@ from bopsurg.generators.kinematics import (
     PSM_JOINT_NAMES,
     psm_link_frames,
 )
-from numpy.typing import ArrayLike, NDArray
-
-from bopsurg.errors import InputError
 
 log = logging.getLogger(__name__)
 

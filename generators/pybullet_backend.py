@@ -57,6 +57,11 @@ from typing import Any
 import cv2
 import numpy as np
 import pybullet as p
+from numpy.typing import NDArray
+from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.transform import Rotation
+
+from bopsurg.bop.models import ObjectModel
 from bopsurg.generators.backend import CameraSpec, LightSpec, RenderedFrame, SceneState
 from bopsurg.generators.kinematics import SceneLayout
 from bopsurg.generators.pybullet_scene import (
@@ -66,11 +71,6 @@ from bopsurg.generators.pybullet_scene import (
     build_scene,
     part_poses,
 )
-from numpy.typing import NDArray
-from scipy.spatial import ConvexHull, QhullError
-from scipy.spatial.transform import Rotation
-
-from bopsurg.bop.models import ObjectModel
 from bopsurg.needle import NeedleSpec
 
 log = logging.getLogger(__name__)

@@ -37,10 +37,10 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from bopsurg.generators.kinematics import SceneLayout, psm_link_frames, rot_x
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.bop.models import ObjectModel
+from bopsurg.generators.kinematics import SceneLayout, psm_link_frames, rot_x
 from bopsurg.needle import NeedleSpec, needle_mesh
 
 F64 = NDArray[np.float64]

@@ -30,9 +30,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from bopsurg.generators.backend import NEEDLE, CameraSpec, RenderBackend, SceneState
-from bopsurg.generators.kinematics import ecm_camera_pose
-from bopsurg.generators.viewpoints import ReplayDraw, draw_replay, light_in_world
 
 from bopsurg._version import __version__
 from bopsurg.atomic import remove_stale_temporaries, write_text
@@ -51,6 +48,9 @@ from bopsurg.bop.scene import (
     save_scene_gt_info,
 )
 from bopsurg.errors import InputError
+from bopsurg.generators.backend import NEEDLE, CameraSpec, RenderBackend, SceneState
+from bopsurg.generators.kinematics import ecm_camera_pose
+from bopsurg.generators.viewpoints import ReplayDraw, draw_replay, light_in_world
 from bopsurg.plugins import DepthRenderer
 from bopsurg.visibility import instance_visibility
 

@@ -36,6 +36,11 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from bopsurg._version import __version__
+from bopsurg.errors import InputError
 from bopsurg.generators.bags import Recording
 from bopsurg.generators.ik import psm_ik_solve
 from bopsurg.generators.kinematics import (
@@ -49,11 +54,6 @@ from bopsurg.generators.kinematics import (
     psm_tip_pose,
     rot_z,
 )
-from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
-
-from bopsurg._version import __version__
-from bopsurg.errors import InputError
 from bopsurg.needle import NeedleSpec
 
 log = logging.getLogger(__name__)

@@ -10,8 +10,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from bopsurg.generators.backend import LightSpec
 from numpy.typing import NDArray
+
+from bopsurg.generators.backend import LightSpec
 
 F64 = NDArray[np.float64]
 

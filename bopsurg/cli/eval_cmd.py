@@ -77,6 +77,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "one, about 0.5 us per model vertex and estimate)",
     )
     p.add_argument("--vsd-delta", type=float, default=15.0, help="VSD tolerance delta, mm")
+    p.add_argument(
+        "--rerun",
+        metavar="FILE.rrd",
+        default=None,
+        help="also write a rerun recording for visual error analysis (needs bopsurg[rerun])",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.set_defaults(func=run)
 
@@ -134,4 +140,9 @@ def run(args: argparse.Namespace) -> int:
         f"\nwrote {Path(args.out) / 'errors.csv'}, summary.json, scores.json "
         f"({len(est)} estimates, {time.perf_counter() - t0:.1f} s)"
     )
+    if args.rerun:
+        from bopsurg.viz import log_evaluation
+
+        rrd = log_evaluation(dataset, est, result, args.rerun)
+        print(f"wrote {rrd}; open it with: rerun {rrd}")
     return 0

@@ -16,7 +16,8 @@ Run bopsurg end to end on embedded data, with nothing to download:
 
   1. write the example needle dataset and a results CSV (bopsurg example),
   2. validate the dataset (bopsurg check),
-  3. evaluate the results (bopsurg eval) and print the paper's table and BOP19 scores.
+  3. evaluate the results (bopsurg eval), print the paper's table and BOP19 scores, and
+     write a rerun recording for visual error analysis (open it with: rerun FILE.rrd).
 
 Outputs go to --out (default: demo_out/).
 """
@@ -58,6 +59,12 @@ def run_example(args: argparse.Namespace) -> int:
     return 0
 
 
+def _has_rerun() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("rerun") is not None
+
+
 def run_demo(args: argparse.Namespace) -> int:
     """Example dataset, check, evaluation."""
     from bopsurg.cli import check_cmd, eval_cmd
@@ -90,6 +97,7 @@ def run_demo(args: argparse.Namespace) -> int:
             renderer="auto",
             vsd_delta=15.0,
             metrics=",".join(INSTANCE_METRICS),
+            rerun=str(out / "eval" / "demo.rrd") if _has_rerun() else None,
             no_progress=False,
         )
     )

@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 
 from bopsurg._version import __version__
-from bopsurg.cli import annotate_cmd, check_cmd, eval_cmd, example_cmd
+from bopsurg.cli import annotate_cmd, check_cmd, eval_cmd, example_cmd, viz_cmd
 from bopsurg.errors import BopsurgError
 from bopsurg.plugins import available_plugins
 
@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     verbosity.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in (eval_cmd, check_cmd, annotate_cmd, example_cmd):
+    for module in (eval_cmd, viz_cmd, check_cmd, annotate_cmd, example_cmd):
         module.register(sub)
     _register_plugin_commands(sub)
     return parser

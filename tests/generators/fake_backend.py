@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from bopsurg.generators.backend import CameraSpec, LightSpec, RenderedFrame, SceneState
-from bopsurg.generators.kinematics import pose
 
 from bopsurg.bop.models import ObjectModel
+from bopsurg.generators.backend import CameraSpec, LightSpec, RenderedFrame, SceneState
+from bopsurg.generators.kinematics import pose
 
 HALF = 12  # patch half size, px
 TISSUE_MM = 400.0

@@ -10,6 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from scipy.spatial.transform import Rotation
+
+from bopsurg.errors import InputError
 from bopsurg.generators import cli_record
 from bopsurg.generators.bags import (
     DEFAULT_ECM_JOINTS,
@@ -24,13 +31,6 @@ from bopsurg.generators.bags import (
     write_bag,
 )
 from bopsurg.generators.trajectory import synthesize_suturing
-from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-from scipy.spatial.transform import Rotation
-
-from bopsurg.errors import InputError
 
 T0 = DEFAULT_TIME_ORIGIN_NS
 

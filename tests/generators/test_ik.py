@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from bopsurg.generators.ik import IKError, cold_seed, psm_ik, psm_ik_solve, psm_ik_trajectory
-from bopsurg.generators.kinematics import PSM_JOINT_LIMITS, in_limits, psm_tip_pose
 
 from bopsurg.errors import InputError
+from bopsurg.generators.ik import IKError, cold_seed, psm_ik, psm_ik_solve, psm_ik_trajectory
+from bopsurg.generators.kinematics import PSM_JOINT_LIMITS, in_limits, psm_tip_pose
 
 LO, HI = PSM_JOINT_LIMITS[:, 0], PSM_JOINT_LIMITS[:, 1]
 

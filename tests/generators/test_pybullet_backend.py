@@ -17,6 +17,7 @@ pytest.importorskip("pybullet")
 pytest.importorskip("trimesh")
 pytest.importorskip("rtree")
 
+from bopsurg.bop.models import ObjectModel
 from bopsurg.generators import pybullet_scene as ps
 from bopsurg.generators.backend import (
     CameraSpec,
@@ -39,8 +40,6 @@ from bopsurg.generators.pybullet_backend import (
     depth_buffer_to_mm,
     render_window,
 )
-
-from bopsurg.bop.models import ObjectModel
 from bopsurg.plugins import load_plugin
 
 from .test_depth_renderer import K_ODD, K_SIM, H, W, compare, raycast

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bopsurg.generators import generate as gen
-from bopsurg.generators.replay import GenerateSettings, ReplayUnit, frame_times, run_replay
 
 from bopsurg.bop.check import check_dataset
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask
 from bopsurg.errors import InputError
+from bopsurg.generators import generate as gen
+from bopsurg.generators.replay import GenerateSettings, ReplayUnit, frame_times, run_replay
 from tests.generators.fake_backend import FakeBackend, FakeRecording
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from bopsurg.errors import InputError
 from bopsurg.generators.kinematics import (
     DEFAULT_LAYOUT,
     ECM_JOINT_LIMITS,
@@ -21,8 +23,6 @@ from bopsurg.generators.trajectory import (
     needle_grasp,
     synthesize_suturing,
 )
-
-from bopsurg.errors import InputError
 from bopsurg.needle import NeedleSpec
 
 ARMS = ("psm1", "psm2")

@@ -1,0 +1,441 @@
+"""Log an evaluation to a rerun recording (``.rrd``) for visual error analysis.
+
+Layout of the recording (entity paths; ``frame`` is a sequence timeline, one step per image
+that has GT or estimates, in ``(scene_id, im_id)`` order):
+
+- ``world``: the camera frame (RDF, mm; the camera sits at the origin).
+- ``world/camera``: :class:`rerun.Pinhole` (K, resolution), per image frame.
+- ``world/camera/rgb``: the image, JPEG-encoded (:class:`rerun.EncodedImage`).
+- ``world/camera/gt_silhouette`` (blue) and ``world/camera/est_silhouette`` (green):
+  :class:`rerun.SegmentationImage` overlays as in the paper's Fig. 3; the estimated silhouette
+  fills the model's triangles projected at each estimated pose, the GT one is the union of the
+  ``mask_visib`` masks (or the same projection at the GT poses where a mask is missing).
+- ``world/gt/obj_{obj_id:06d}`` (blue) and ``world/est/obj_{obj_id:06d}`` (green): the model
+  meshes (mm) at the GT and estimated poses.
+- ``metrics/{re,te,mssd,mspd}`` and ``metrics/visib_fract``: per-frame errors (deg, mm, mm,
+  px, fraction); ``metrics/worst_rank``: 1..N on the N frames with the largest MSSD.
+- ``frame_info/{scene_id,im_id}``: the ids of each frame.
+- ``histograms/{re,te,mssd}`` (:class:`rerun.BarChart`) and ``histograms/medians`` (text).
+- ``report/summary`` (the paper's table, markdown) and ``report/worst`` (the worst frames).
+
+The per-frame value of a metric is the largest over the frame's matched estimates (the one an
+error analysis wants to see); with one object instance per image it is that estimate's value
+in errors.csv. Frames without a matched estimate have no metric values.
+
+Cost: scalars go for every frame in one columnar call each (:func:`rerun.send_columns`);
+images, silhouettes and meshes, the costly part (~10 ms a frame), only for the frames chosen
+by :func:`select_image_frames`: all frames up to :data:`DEFAULT_IMAGE_FRAMES`, else the
+:data:`DEFAULT_IMAGE_FRAMES` worst (largest MSSD) plus as many spread uniformly over the rest.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.images import load_mask, load_rgb
+from bopsurg.bop.results import PoseEstimates
+from bopsurg.errors import BopsurgError
+from bopsurg.evaluation.summary import format_table
+from bopsurg.geometry import project_pts
+
+if TYPE_CHECKING:
+    from bopsurg.evaluation.runner import Evaluation
+
+log = logging.getLogger(__name__)
+
+#: Frames with images when ``max_frames`` is None: all up to this many, else this many worst
+#: frames plus this many spread uniformly over the others.
+DEFAULT_IMAGE_FRAMES = 500
+#: Per-frame metrics logged under ``metrics/`` (RE deg, TE mm, MSSD mm, MSPD px).
+FRAME_METRICS = ("re", "te", "mssd", "mspd")
+#: Silhouette colours (RGB): GT blue, estimate green, as in the paper's Fig. 3.
+GT_COLOR = (40, 90, 255)
+EST_COLOR = (0, 220, 0)
+JPEG_QUALITY = 85
+HIST_BINS = 30
+_SHIFT = 4  # sub-pixel bits for cv2.fillConvexPoly
+
+
+def _import_rerun() -> Any:
+    try:
+        import rerun as rr
+    except ImportError as err:
+        raise BopsurgError("rerun-sdk is not installed; pip install bopsurg[rerun]") from err
+    return rr
+
+
+def frame_table(errors: pd.DataFrame, gt_rows: pd.DataFrame) -> pd.DataFrame:
+    """One row per image with GT or estimates, in ``(scene_id, im_id)`` order.
+
+    Args:
+        errors: errors.csv rows (:attr:`Evaluation.errors`).
+        gt_rows: Per-GT rows (:attr:`Evaluation.gt_rows`).
+
+    Returns:
+        Columns ``frame`` (0..n-1), ``scene_id``, ``im_id``, ``n_gt``, ``n_est`` and per metric
+        of :data:`FRAME_METRICS` plus ``visib_fract`` the largest value over the frame's
+        matched estimates (NaN when none is matched): RE deg, TE/MSSD mm, MSPD px.
+    """
+    key = ["scene_id", "im_id"]
+    ids = pd.concat([errors[key], gt_rows[key]]).drop_duplicates()
+    frames = ids.sort_values(key).reset_index(drop=True).astype(np.int64)
+    frames.insert(0, "frame", np.arange(len(frames), dtype=np.int64))
+    frames = frames.merge(gt_rows.groupby(key).size().rename("n_gt"), on=key, how="left")
+    frames = frames.merge(errors.groupby(key).size().rename("n_est"), on=key, how="left")
+    matched = errors[errors["gt_id"] >= 0]
+    cols = [c for c in (*FRAME_METRICS, "visib_fract") if c in matched]
+    frames = frames.merge(matched.groupby(key)[cols].max(), on=key, how="left")
+    frames[["n_gt", "n_est"]] = frames[["n_gt", "n_est"]].fillna(0).astype(np.int64)
+    return frames
+
+
+def select_image_frames(mssd: np.ndarray, max_frames: int | None = None) -> np.ndarray:
+    """The frames that get images (see the module docstring).
+
+    Args:
+        mssd: (F,) per-frame MSSD, mm (NaN = no matched estimate, ranked last).
+        max_frames: At most this many frames: half the worst (largest MSSD), the rest spread
+            uniformly over the others. None: all when F ≤ :data:`DEFAULT_IMAGE_FRAMES`, else
+            that many worst plus that many uniform.
+
+    Returns:
+        Sorted frame indices.
+    """
+    n = len(mssd)
+    if max_frames is None:
+        budget = n if n <= DEFAULT_IMAGE_FRAMES else 2 * DEFAULT_IMAGE_FRAMES
+    else:
+        budget = max(0, int(max_frames))
+    if budget >= n:
+        return np.arange(n)
+    n_worst = budget // 2 if max_frames is not None else DEFAULT_IMAGE_FRAMES
+    order = np.argsort(-np.nan_to_num(np.asarray(mssd, float), nan=-np.inf), kind="stable")
+    worst = order[:n_worst]
+    rest = np.setdiff1d(np.arange(n), worst)
+    n_uniform = min(budget - n_worst, len(rest))
+    uniform = (
+        rest[np.linspace(0, len(rest) - 1, n_uniform).round().astype(int)] if n_uniform else []
+    )
+    return np.union1d(worst, uniform).astype(np.int64)
+
+
+def _is_closed(faces: np.ndarray) -> bool:
+    """Whether every edge of the mesh is shared by exactly two triangles (a closed surface)."""
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(len(counts)) and bool(np.all(counts == 2))
+
+
+def _silhouette(
+    pts: np.ndarray,
+    faces: np.ndarray,
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    shape: tuple[int, int],
+    closed: bool = False,
+) -> np.ndarray:
+    """Model silhouette at pose (R, t mm) under K (px): (H, W) uint8, 1 = object.
+
+    For a closed mesh the triangles of one winding sign in the image already cover the
+    silhouette (every silhouette ray crosses the surface entering and leaving), so only those
+    are filled: half the work.
+    """
+    mask = np.zeros(shape, np.uint8)
+    if t[2] <= 0:
+        return mask
+    uv = project_pts(pts, K[None], R[None], t[None])[0]
+    if not np.all(np.isfinite(uv)):
+        return mask
+    h, w = shape
+    uv = np.clip(uv, -4 * max(h, w), 4 * max(h, w))  # keep the fixed-point coordinates in range
+    tri = np.round(uv * (1 << _SHIFT)).astype(np.int32)[faces]
+    if closed:
+        d1 = (tri[:, 1] - tri[:, 0]).astype(np.int64)
+        d2 = (tri[:, 2] - tri[:, 0]).astype(np.int64)
+        cross = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+        tri = tri[cross > 0] if (cross > 0).sum() <= (cross < 0).sum() else tri[cross < 0]
+    for poly in tri:
+        cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=_SHIFT)
+    return mask
+
+
+def _blueprint(rrb: Any) -> Any:
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(name="image", origin="world/camera"),
+                rrb.Spatial3DView(name="3D", origin="world"),
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(name="errors", origin="metrics"),
+                rrb.Tabs(
+                    rrb.BarChartView(name="RE", origin="histograms/re"),
+                    rrb.BarChartView(name="TE", origin="histograms/te"),
+                    rrb.BarChartView(name="MSSD", origin="histograms/mssd"),
+                ),
+                rrb.Tabs(
+                    rrb.TextDocumentView(name="worst frames", origin="report/worst"),
+                    rrb.TextDocumentView(name="summary", origin="report/summary"),
+                    rrb.TextDocumentView(name="medians", origin="histograms/medians"),
+                ),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+def log_evaluation(
+    dataset: BopDataset,
+    estimates: PoseEstimates,
+    evaluation: Evaluation,
+    path: str | Path,
+    *,
+    max_frames: int | None = None,
+    worst: int = 20,
+) -> Path:
+    """Write an evaluation as a rerun recording, headless (no viewer is started).
+
+    Args:
+        dataset: The evaluated dataset (images, masks, cameras, GT poses, models).
+        estimates: The evaluated estimates (poses: R, t mm).
+        evaluation: :func:`bopsurg.evaluation.runner.evaluate`'s result.
+        path: The ``.rrd`` file to write (parent folders are created).
+        max_frames: At most this many frames get images, silhouettes and meshes (see
+            :func:`select_image_frames`); scalars go for all frames.
+        worst: Length of the "worst frames" list (largest per-frame MSSD, mm).
+
+    Returns:
+        The written path. Open it with ``rerun FILE.rrd``.
+
+    Raises:
+        BopsurgError: rerun-sdk is not installed.
+    """
+    rr = _import_rerun()
+    import rerun.blueprint as rrb
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames = frame_table(evaluation.errors, evaluation.gt_rows)
+    n = len(frames)
+    rec = rr.RecordingStream("bopsurg_eval", recording_id=None)
+    rec.save(path, default_blueprint=_blueprint(rrb))
+    try:
+        _log_static(rr, rec, frames, evaluation, worst)
+        _log_scalars(rr, rec, frames, worst)
+        chosen = select_image_frames(frames["mssd"].to_numpy(float), max_frames)
+        _log_images(rr, rec, dataset, estimates, frames.iloc[chosen])
+        log.info("rerun: %d frames, %d with images -> %s", n, len(chosen), path)
+    finally:
+        rec.flush()
+        rec.disconnect()
+    return path
+
+
+def _worst_frames(frames: pd.DataFrame, worst: int) -> pd.DataFrame:
+    ranked = frames[np.isfinite(frames["mssd"].to_numpy(float))]
+    return ranked.sort_values("mssd", ascending=False, kind="stable").head(max(0, worst))
+
+
+def _log_static(rr: Any, rec: Any, frames: pd.DataFrame, ev: Evaluation, worst: int) -> None:
+    rec.log("world", rr.ViewCoordinates.RDF, static=True)
+    for name, color in (("gt_silhouette", GT_COLOR), ("est_silhouette", EST_COLOR)):
+        rec.log(
+            f"world/camera/{name}",
+            rr.AnnotationContext([(1, name.split("_")[0], color)]),
+            static=True,
+        )
+    units = {"re": "deg", "te": "mm", "mssd": "mm"}
+    lines = ["# Medians (matched estimates)", ""]
+    matched = ev.errors[ev.errors["gt_id"] >= 0]
+    for name, unit in units.items():
+        values = matched[name].to_numpy(float) if name in matched else np.array([])
+        values = values[np.isfinite(values)]
+        if len(values) == 0:
+            lines.append(f"- {name.upper()}: no values")
+            continue
+        counts, edges = np.histogram(values, bins=HIST_BINS)
+        median = float(np.median(values))
+        rec.log(
+            f"histograms/{name}",
+            rr.BarChart(
+                counts,
+                abscissa=(edges[:-1] + edges[1:]) / 2,
+                widths=np.diff(edges).astype(np.float32),
+            ),
+            static=True,
+        )
+        lines.append(
+            f"- {name.upper()} [{unit}]: median {median:.2f} (bin "
+            f"{int(np.searchsorted(edges, median, side='right')) - 1} of {HIST_BINS}, "
+            f"{edges[0]:.2f}..{edges[-1]:.2f})"
+        )
+    rec.log(
+        "histograms/medians",
+        rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN),
+        static=True,
+    )
+    table = format_table(ev.summary, ev.scores)
+    rec.log(
+        "report/summary",
+        rr.TextDocument(f"# Evaluation\n\n```\n{table}\n```\n", media_type=rr.MediaType.MARKDOWN),
+        static=True,
+    )
+    top = _worst_frames(frames, worst)
+    rows = [
+        f"# {len(top)} worst frames (largest MSSD)",
+        "",
+        "Jump there on the `frame` timeline; `metrics/worst_rank` marks them.",
+        "",
+        "| rank | frame | scene | image | MSSD [mm] | RE [deg] | TE [mm] | visib |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for rank, r in enumerate(top.itertuples(index=False), start=1):
+        rows.append(
+            f"| {rank} | {r.frame} | {r.scene_id} | {r.im_id} | {r.mssd:.2f} | "
+            f"{getattr(r, 're', np.nan):.2f} | {getattr(r, 'te', np.nan):.2f} | "
+            f"{getattr(r, 'visib_fract', np.nan):.2f} |"
+        )
+    rec.log(
+        "report/worst",
+        rr.TextDocument("\n".join(rows), media_type=rr.MediaType.MARKDOWN),
+        static=True,
+    )
+
+
+def _send(rr: Any, rec: Any, entity: str, frame: np.ndarray, values: np.ndarray) -> None:
+    ok = np.isfinite(values)
+    if not ok.any():
+        return
+    rec.send_columns(
+        entity,
+        indexes=[rr.TimeColumn("frame", sequence=frame[ok])],
+        columns=rr.Scalars.columns(scalars=values[ok].astype(np.float64)),
+    )
+
+
+def _log_scalars(rr: Any, rec: Any, frames: pd.DataFrame, worst: int) -> None:
+    frame = frames["frame"].to_numpy(np.int64)
+    for name in (*FRAME_METRICS, "visib_fract"):
+        if name in frames:
+            _send(rr, rec, f"metrics/{name}", frame, frames[name].to_numpy(float))
+    for name in ("scene_id", "im_id"):
+        _send(rr, rec, f"frame_info/{name}", frame, frames[name].to_numpy(float))
+    top = _worst_frames(frames, worst)
+    if len(top):
+        order = np.argsort(top["frame"].to_numpy())
+        _send(
+            rr,
+            rec,
+            "metrics/worst_rank",
+            top["frame"].to_numpy(np.int64)[order],
+            np.arange(1, len(top) + 1, dtype=float)[order],
+        )
+        rec.log(
+            "metrics/worst_rank", rr.SeriesPoints(markers="cross", marker_sizes=6.0), static=True
+        )
+
+
+def _log_images(
+    rr: Any, rec: Any, dataset: BopDataset, est: PoseEstimates, frames: pd.DataFrame
+) -> None:
+    obj_ids = sorted({int(o) for o in est.obj_id} | set(dataset.obj_ids))
+    est_key = pd.DataFrame({"scene_id": est.scene_id, "im_id": est.im_id})
+    est_groups = est_key.groupby(["scene_id", "im_id"]).indices
+    models: dict[int, Any] = {}
+    closed: dict[int, bool] = {}
+
+    def model(obj_id: int) -> Any:
+        if obj_id not in models:
+            mdl = models[obj_id] = dataset.model(obj_id)
+            closed[obj_id] = _is_closed(mdl.faces)
+            # The mesh once (static, model frame, mm); each frame only moves its instances.
+            for kind, color in (("gt", GT_COLOR), ("est", EST_COLOR)):
+                rec.log(
+                    f"world/{kind}/obj_{obj_id:06d}",
+                    rr.Mesh3D(
+                        vertex_positions=mdl.pts,
+                        triangle_indices=mdl.faces,
+                        albedo_factor=[*color, 255],
+                    ),
+                    static=True,
+                )
+        return models[obj_id]
+
+    for r in frames.itertuples(index=False):
+        s, im = int(r.scene_id), int(r.im_id)
+        scene = dataset.scene(s)
+        K = scene.camera[im].K
+        rec.set_time("frame", sequence=int(r.frame))
+        try:
+            rgb = load_rgb(scene.rgb_path(im))
+        except (OSError, BopsurgError):
+            rgb = None
+        if rgb is not None:
+            h, w = rgb.shape[:2]
+        else:
+            w, h = dataset.image_size(s)
+        rec.log(
+            "world/camera",
+            rr.Pinhole(image_from_camera=K, resolution=[w, h], camera_xyz=rr.ViewCoordinates.RDF),
+        )
+        if rgb is not None:
+            ok, jpg = cv2.imencode(
+                ".jpg",
+                cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY],
+            )
+            if ok:
+                rec.log(
+                    "world/camera/rgb",
+                    rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"),
+                )
+        gt_mask = np.zeros((h, w), np.uint8)
+        est_mask = np.zeros((h, w), np.uint8)
+        gt_poses: dict[int, list] = {o: [] for o in obj_ids}
+        est_poses: dict[int, list] = {o: [] for o in obj_ids}
+        for gt_id, g in enumerate(scene.gt.get(im, [])):
+            if g.t[2] <= 0:
+                continue
+            gt_poses.setdefault(g.obj_id, []).append((g.R, g.t))
+            mpath = scene.mask_visib_path(im, gt_id)
+            if mpath.is_file():
+                m = load_mask(mpath)
+                if m.shape == gt_mask.shape:
+                    gt_mask[m] = 1
+                    continue
+            mdl = model(g.obj_id)
+            gt_mask |= _silhouette(mdl.pts, mdl.faces, K, g.R, g.t, (h, w), closed[g.obj_id])
+        for e in est_groups.get((s, im), []):
+            o = int(est.obj_id[e])
+            est_poses.setdefault(o, []).append((est.R[e], est.t[e]))
+            mdl = model(o)
+            est_mask |= _silhouette(mdl.pts, mdl.faces, K, est.R[e], est.t[e], (h, w), closed[o])
+        rec.log(
+            "world/camera/gt_silhouette",
+            rr.SegmentationImage(gt_mask, opacity=0.45, draw_order=1.0),
+        )
+        rec.log(
+            "world/camera/est_silhouette",
+            rr.SegmentationImage(est_mask, opacity=0.45, draw_order=2.0),
+        )
+        for kind, poses in (("gt", gt_poses), ("est", est_poses)):
+            for o, p in poses.items():
+                model(o)
+                entity = f"world/{kind}/obj_{o:06d}"
+                if p:
+                    pose = rr.InstancePoses3D(
+                        translations=np.array([pt for _, pt in p], float),
+                        mat3x3=np.array([pR for pR, _ in p], float),
+                    )
+                else:  # no instance in this frame: one instance scaled to nothing
+                    pose = rr.InstancePoses3D(translations=[[0.0, 0.0, 0.0]], scales=[[0.0] * 3])
+                rec.log(entity, pose)

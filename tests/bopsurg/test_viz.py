@@ -1,0 +1,161 @@
+"""Visual error analysis: the rerun recording of an evaluation, read back."""
+
+from __future__ import annotations
+
+import builtins
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("rerun")
+
+from rerun.chunk import RrdReader
+
+from bopsurg.bop import BopDataset, load_results
+from bopsurg.cli.main import main
+from bopsurg.errors import BopsurgError
+from bopsurg.evaluation.runner import evaluate
+from bopsurg.example import ExampleSpec, write_example_dataset
+from bopsurg.viz import frame_table, log_evaluation, select_image_frames
+
+EXPECTED = {
+    "/world",
+    "/world/camera",
+    "/world/camera/rgb",
+    "/world/camera/gt_silhouette",
+    "/world/camera/est_silhouette",
+    "/world/gt/obj_000001",
+    "/world/est/obj_000001",
+    "/metrics/re",
+    "/metrics/te",
+    "/metrics/mssd",
+    "/metrics/visib_fract",
+    "/metrics/worst_rank",
+    "/frame_info/scene_id",
+    "/frame_info/im_id",
+    "/histograms/re",
+    "/histograms/te",
+    "/histograms/mssd",
+    "/histograms/medians",
+    "/report/summary",
+    "/report/worst",
+}
+
+
+@pytest.fixture(scope="module")
+def example(tmp_path_factory):
+    return write_example_dataset(
+        tmp_path_factory.mktemp("viz"), ExampleSpec(scenes=1, images_per_scene=6)
+    )
+
+
+@pytest.fixture(scope="module")
+def logged(example, tmp_path_factory):
+    dataset = BopDataset(example.root, example.split)
+    est = load_results(example.results)
+    ev = evaluate(dataset, est)
+    path = log_evaluation(dataset, est, ev, tmp_path_factory.mktemp("rrd") / "eval.rrd", worst=3)
+    store = RrdReader(str(path)).stream().collect()
+    chunks: dict[str, list] = {}
+    for chunk in store.stream():
+        chunks.setdefault(chunk.entity_path, []).append(chunk)
+    return ev, path, chunks
+
+
+def _scalars(chunks, entity: str) -> pd.Series:
+    frames, values = [], []
+    for chunk in chunks[entity]:
+        rb = chunk.to_record_batch()
+        if "frame" not in rb.schema.names:
+            continue
+        frames += rb.column("frame").to_pylist()
+        values += [v[0] for v in rb.column("Scalars:scalars").to_pylist()]
+    return pd.Series(values, index=frames).sort_index()
+
+
+def test_entities(logged):
+    _, path, chunks = logged
+    assert path.is_file()
+    assert path.stat().st_size > 0
+    assert set(chunks) >= EXPECTED
+
+
+def test_mssd_scalars_equal_errors_csv(logged):
+    ev, _, chunks = logged
+    frames = frame_table(ev.errors, ev.gt_rows)
+    matched = ev.errors[ev.errors["gt_id"] >= 0]
+    expected = (
+        frames[["frame", "scene_id", "im_id"]]
+        .merge(matched.groupby(["scene_id", "im_id"])["mssd"].max().reset_index())
+        .set_index("frame")["mssd"]
+        .sort_index()
+    )
+    got = _scalars(chunks, "/metrics/mssd")
+    assert len(expected) > 0
+    assert list(got.index) == list(expected.index)
+    np.testing.assert_allclose(got.to_numpy(), expected.to_numpy(), rtol=0, atol=1e-12)
+    ids = _scalars(chunks, "/frame_info/im_id")
+    assert list(ids.to_numpy()) == list(frames["im_id"].to_numpy(float))
+
+
+def test_worst_rank_marks_largest_mssd(logged):
+    ev, _, chunks = logged
+    frames = frame_table(ev.errors, ev.gt_rows)
+    rank = _scalars(chunks, "/metrics/worst_rank")
+    assert len(rank) == 3
+    top = frames.sort_values("mssd", ascending=False).head(3)["frame"].tolist()
+    assert [int(f) for f in rank.sort_values().index] == top
+
+
+def test_select_image_frames():
+    mssd = np.arange(2000, dtype=float)
+    assert len(select_image_frames(mssd[:10])) == 10
+    chosen = select_image_frames(mssd)
+    assert len(chosen) == 1000
+    assert set(range(1500, 2000)) <= set(chosen.tolist())  # the 500 worst
+    few = select_image_frames(mssd, max_frames=10)
+    assert len(few) == 10
+    assert {1999, 1998, 1997, 1996, 1995} <= set(few.tolist())
+
+
+def test_missing_rerun_is_a_user_error(logged, monkeypatch, tmp_path):
+    real_import = builtins.__import__
+
+    def fake_import(name, *args, **kwargs):
+        if name == "rerun" or name.startswith("rerun."):
+            raise ImportError(name)
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", fake_import)
+    ev = logged[0]
+    with pytest.raises(BopsurgError, match="pip install bopsurg\\[rerun\\]"):
+        log_evaluation(None, None, ev, tmp_path / "x.rrd")  # type: ignore[arg-type]
+
+
+def test_cli_eval_rerun_and_viz(example, tmp_path, capsys):
+    rrd = tmp_path / "eval.rrd"
+    code = main(
+        [
+            "eval",
+            str(example.root),
+            str(example.results),
+            "--out",
+            str(tmp_path / "eval"),
+            "--rerun",
+            str(rrd),
+            "--no-progress",
+            "--renderer",
+            "none",
+        ]
+    )
+    assert code == 0
+    assert rrd.is_file()
+    assert f"open it with: rerun {rrd}" in capsys.readouterr().out
+    out = tmp_path / "viz.rrd"
+    code = main(["viz", str(example.root), str(example.results), "--out", str(out)])
+    assert code == 0
+    assert out.is_file()
+    assert "open it with: rerun" in capsys.readouterr().out
+    names = {c.entity_path for c in RrdReader(str(out)).stream().collect().stream()}
+    assert "/report/worst" in names
