@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from bopsurg.atomic import remove_stale_temporaries, write_text
 from bopsurg.bop.dataset import BopDataset, BopScene
