@@ -3,7 +3,7 @@
 Builds bench_eval's synthetic scene-files-only dataset (default 10,000 images, one needle
 each, 5 % duplicate estimates), evaluates it, then times ``log_evaluation``: scalars for every
 frame (``send_columns``) plus silhouettes and meshes for the ``--max-frames`` image frames
-(default: the module's rule, 500 worst + 500 uniform for 10,000 frames). The dataset has no
+(default: the module's rule, 100 worst + 100 uniform for 10,000 frames). The dataset has no
 RGB files, so the JPEG cost is timed separately on a 640×480 image and added as an estimate.
 Prints each time and the ratio logging / evaluation. Seeded.
 

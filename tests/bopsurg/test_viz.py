@@ -112,8 +112,8 @@ def test_select_image_frames():
     mssd = np.arange(2000, dtype=float)
     assert len(select_image_frames(mssd[:10])) == 10
     chosen = select_image_frames(mssd)
-    assert len(chosen) == 1000
-    assert set(range(1500, 2000)) <= set(chosen.tolist())  # the 500 worst
+    assert len(chosen) == 200
+    assert set(range(1900, 2000)) <= set(chosen.tolist())  # the 100 worst
     few = select_image_frames(mssd, max_frames=10)
     assert len(few) == 10
     assert {1999, 1998, 1997, 1996, 1995} <= set(few.tolist())
