@@ -9,8 +9,8 @@ from pathlib import Path
 
 from bopsurg._version import __version__
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.results import check_results_against_dataset, load_results
 from bopsurg.bop.targets import load_targets
+from bopsurg.cli.inputs import add_dataset_and_results, load_dataset_and_results
 from bopsurg.errors import BopsurgError
 from bopsurg.evaluation.runner import INSTANCE_METRICS, evaluate, write_evaluation
 from bopsurg.evaluation.summary import format_table
@@ -48,11 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("dataset", help="dataset root folder (holds models/ and the split folders)")
-    p.add_argument("results", help="BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time")
+    add_dataset_and_results(p)
     p.add_argument("--out", required=True, help="output folder (created)")
-    p.add_argument("--split", default="test", help="split folder name (default: test)")
-    p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr")
     p.add_argument(
         "--targets",
         default=None,
@@ -111,11 +108,7 @@ def _renderer(choice: str, dataset: BopDataset) -> object | None:
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
     t0 = time.perf_counter()
-    dataset = BopDataset(args.dataset, args.split, split_type=args.split_type)
-    results_path = Path(args.results)
-    est = load_results(results_path)
-    images = {(s, i) for s in dataset.scene_ids for i in dataset.scene(s).camera}
-    check_results_against_dataset(est, results_path, images=images, obj_ids=set(dataset.obj_ids))
+    dataset, est = load_dataset_and_results(args)
     targets = load_targets(args.targets) if args.targets else None
     renderer = _renderer(args.renderer, dataset)
     result = evaluate(
@@ -132,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),
         "split": dataset.split_dir.name,
-        "results": str(results_path.resolve()),
+        "results": str(Path(args.results).resolve()),
     }
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))

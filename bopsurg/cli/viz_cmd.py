@@ -5,10 +5,8 @@ from __future__ import annotations
 import argparse
 import logging
 import time
-from pathlib import Path
 
-from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.results import check_results_against_dataset, load_results
+from bopsurg.cli.inputs import add_dataset_and_results, load_dataset_and_results
 from bopsurg.evaluation.runner import evaluate
 
 log = logging.getLogger(__name__)
@@ -34,11 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("dataset", help="dataset root folder (holds models/ and the split folders)")
-    p.add_argument("results", help="BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time")
+    add_dataset_and_results(p)
     p.add_argument("--out", required=True, metavar="FILE.rrd", help="rerun recording to write")
-    p.add_argument("--split", default="test", help="split folder name (default: test)")
-    p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr")
     p.add_argument(
         "--min-visib",
         type=float,
@@ -49,7 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--max-frames",
         type=int,
         default=None,
-        help="at most this many frames with images (default: all up to 500, else 1000)",
+        help="at most this many frames with images (default: all up to 100, "
+        "else the 100 worst + 100 spread)",
     )
     p.add_argument("--worst", type=int, default=20, help="length of the worst-frames list")
     p.set_defaults(func=run)
@@ -60,11 +56,7 @@ def run(args: argparse.Namespace) -> int:
     from bopsurg.viz import log_evaluation
 
     t0 = time.perf_counter()
-    dataset = BopDataset(args.dataset, args.split, split_type=args.split_type)
-    results_path = Path(args.results)
-    est = load_results(results_path)
-    images = {(s, i) for s in dataset.scene_ids for i in dataset.scene(s).camera}
-    check_results_against_dataset(est, results_path, images=images, obj_ids=set(dataset.obj_ids))
+    dataset, est = load_dataset_and_results(args)
     result = evaluate(dataset, est, min_visib=args.min_visib)
     rrd = log_evaluation(
         dataset, est, result, args.out, max_frames=args.max_frames, worst=args.worst

@@ -1,0 +1,27 @@
+"""Arguments and loading shared by the commands that take a dataset and a results CSV."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.results import PoseEstimates, check_results_against_dataset, load_results
+
+
+def add_dataset_and_results(p: argparse.ArgumentParser) -> None:
+    """``DATASET RESULTS --split --split-type``."""
+    p.add_argument("dataset", help="dataset root folder (holds models/ and the split folders)")
+    p.add_argument("results", help="BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time")
+    p.add_argument("--split", default="test", help="split folder name (default: test)")
+    p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr")
+
+
+def load_dataset_and_results(args: argparse.Namespace) -> tuple[BopDataset, PoseEstimates]:
+    """Open the dataset, load the results and check them against it (one-line errors)."""
+    dataset = BopDataset(args.dataset, args.split, split_type=args.split_type)
+    results_path = Path(args.results)
+    est = load_results(results_path)
+    images = {(s, i) for s in dataset.scene_ids for i in dataset.scene(s).camera}
+    check_results_against_dataset(est, results_path, images=images, obj_ids=set(dataset.obj_ids))
+    return dataset, est
