@@ -7,7 +7,9 @@ import logging
 import math
 import time
 
+from bopsurg.cli.inputs import add_executor_args
 from bopsurg.errors import InputError
+from bopsurg.executors import make_executor
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +53,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--period", type=float, default=d.period, help="seconds between frames (default: 0.5)"
     )
     p.add_argument("--seed", type=int, default=d.seed, help="dataset seed (default: 0)")
-    p.add_argument("--workers", type=int, default=1, help="worker processes (default: 1)")
     p.add_argument(
         "--min-visib",
         type=float,
@@ -102,6 +103,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--renderer", choices=("tiny", "egl"), default="tiny", help="PyBullet renderer")
     p.add_argument("--backend", default=d.backend, help="generator backend plugin (pybullet)")
+    add_executor_args(p, unit="replay")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=run)
 
@@ -180,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
         split=args.split,
         settings=settings,
         workers=args.workers,
+        executor=make_executor(args.executor, workers=args.workers, ray_address=args.ray_address),
         progress=not args.no_progress,
     )
     dt = time.perf_counter() - t0

@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing as mp
-import queue
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +24,7 @@ from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
 from bopsurg.bop.targets import enumerate_targets, save_targets
 from bopsurg.errors import InputError
+from bopsurg.executors import Executor, LocalExecutor
 from bopsurg.generators.backend import NEEDLE
 from bopsurg.generators.replay import (
     AmodalRenderer,
@@ -74,28 +73,23 @@ def make_amodal(settings: GenerateSettings, out: str | Path) -> AmodalRenderer |
     return AmodalRenderer(load_plugin("renderer", settings.renderer)(), Path(out) / "models")
 
 
-# -- worker processes: one backend and one object-alone renderer per process ---------------
-_WORKER_BACKEND: object | None = None
-_WORKER_AMODAL: AmodalRenderer | None = None
-_WORKER_QUEUE: object | None = None
+# -- the unit of work, wherever it runs: one backend and renderer per process, reused ------
+_STATE: dict[tuple[str, str], tuple[object, AmodalRenderer | None]] = {}
 
 
-def _worker_init(settings: GenerateSettings, out: str, progress_queue: object) -> None:
-    global _WORKER_BACKEND, _WORKER_QUEUE, _WORKER_AMODAL
-    _WORKER_BACKEND = make_backend(settings)
-    _WORKER_AMODAL = make_amodal(settings, out)
-    _WORKER_QUEUE = progress_queue
+def _replay_unit(unit: ReplayUnit, report: Callable[[int], None]) -> ReplayResult:
+    """Run one replay with this process's backend for the unit's settings (made once)."""
+    key = (json.dumps(unit.settings.to_json(), sort_keys=True), unit.out)
+    if key not in _STATE:
+        _STATE[key] = (make_backend(unit.settings), make_amodal(unit.settings, unit.out))
+    backend, amodal = _STATE[key]
+    return run_replay(unit, backend, _read_bag, amodal=amodal, on_frame=report)  # type: ignore[arg-type]
 
 
-def _worker_run(unit: ReplayUnit) -> ReplayResult:
-    q = _WORKER_QUEUE
-    return run_replay(
-        unit,
-        _WORKER_BACKEND,  # type: ignore[arg-type]
-        _read_bag,
-        amodal=_WORKER_AMODAL,
-        on_frame=q.put,  # type: ignore[union-attr]
-    )
+def _close_state() -> None:
+    while _STATE:
+        backend, _ = _STATE.popitem()[1]
+        backend.close()  # type: ignore[attr-defined]
 
 
 # -----------------------------------------------------------------------------------------
@@ -163,6 +157,7 @@ def generate_dataset(
     split: str = "test",
     settings: GenerateSettings | None = None,
     workers: int = 1,
+    executor: Executor | None = None,
     progress: bool = True,
 ) -> GenerateReport:
     """Replay every bag ``settings.replays`` times into the BOP dataset at ``out``.
@@ -172,7 +167,8 @@ def generate_dataset(
         out: Dataset root (created).
         split: Split folder name, e.g. ``test`` or ``train``.
         settings: Generation settings (seed, replays, period, ...).
-        workers: Worker processes (1 = in this process).
+        workers: Worker processes of the default local executor (1 = in this process).
+        executor: Where replays run (:mod:`bopsurg.executors`); default: local processes.
         progress: Show a progress bar (frames done and rate).
 
     Returns:
@@ -205,32 +201,16 @@ def generate_dataset(
         for i, b in enumerate(bag_paths)
         for r in range(settings.replays)
     ]
-    results: list[ReplayResult] = []
     bar = tqdm(total=total, unit="frame", desc="generate", disable=not progress, smoothing=0.1)
+    runner = executor or LocalExecutor(workers)
     try:
-        if workers == 1:
-            backend = make_backend(settings)
-            amodal = make_amodal(settings, out)
-            try:
-                for unit in units:
-                    res = run_replay(
-                        unit,
-                        backend,  # type: ignore[arg-type]
-                        _read_bag,
-                        amodal=amodal,
-                        on_frame=bar.update,
-                    )
-                    # frames a resumed run did not need to render
-                    bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
-                    results.append(res)
-            finally:
-                backend.close()  # type: ignore[attr-defined]
-        else:
-            results = _run_pool(units, settings, str(out), workers, bar)
-            for unit, res in zip(units, results, strict=True):
-                bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
+        results: list[ReplayResult] = runner.map(_replay_unit, units, on_progress=bar.update)
+        for unit, res in zip(units, results, strict=True):
+            # frames a resumed run did not need to render
+            bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
     finally:
         bar.close()
+        _close_state()
     scene_ids = [u.scene_id for u in units]
     _write_targets(out, split, scene_ids)
     return GenerateReport(
@@ -239,25 +219,3 @@ def generate_dataset(
         frames_rendered=sum(r.frames_rendered for r in results),
         frames_written=sum(r.frames_written for r in results),
     )
-
-
-def _run_pool(
-    units: Sequence[ReplayUnit], settings: GenerateSettings, out: str, workers: int, bar: tqdm
-) -> list[ReplayResult]:
-    ctx = mp.get_context("spawn")  # fresh interpreters: no inherited renderer state
-    progress_queue = ctx.Queue()
-    results: list[ReplayResult] = []
-    with ctx.Pool(
-        workers, initializer=_worker_init, initargs=(settings, out, progress_queue)
-    ) as pool:
-        pending = pool.map_async(_worker_run, units, chunksize=1)
-        while True:
-            try:
-                bar.update(progress_queue.get(timeout=0.2))
-            except queue.Empty:
-                if pending.ready():
-                    break
-        results = pending.get()  # re-raises a worker's error here
-        while not progress_queue.empty():
-            bar.update(progress_queue.get_nowait())
-    return results

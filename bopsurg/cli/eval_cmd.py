@@ -10,10 +10,16 @@ from pathlib import Path
 from bopsurg._version import __version__
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.targets import load_targets
-from bopsurg.cli.inputs import add_dataset_and_results, load_dataset_and_results
+from bopsurg.cli.inputs import add_dataset_and_results, add_executor_args, load_dataset_and_results
 from bopsurg.errors import BopsurgError
-from bopsurg.evaluation.runner import INSTANCE_METRICS, evaluate, write_evaluation
+from bopsurg.evaluation.runner import (
+    INSTANCE_METRICS,
+    evaluate,
+    evaluate_distributed,
+    write_evaluation,
+)
 from bopsurg.evaluation.summary import format_table
+from bopsurg.executors import make_executor
 from bopsurg.plugins import available_plugins, load_plugin
 
 log = logging.getLogger(__name__)
@@ -80,6 +86,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="also write a rerun recording for visual error analysis (needs bopsurg[rerun])",
     )
+    add_executor_args(p, unit="scene")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.set_defaults(func=run)
 
@@ -105,22 +112,47 @@ def _renderer(choice: str, dataset: BopDataset) -> object | None:
     return load_plugin("renderer", choice)()
 
 
+def _renderer_name(renderer: object | None) -> str | None:
+    if renderer is None:
+        return None
+    for name, ep in available_plugins("renderer").items():
+        if ep.value.split(":")[-1] == type(renderer).__name__:
+            return name
+    raise BopsurgError(f"renderer {type(renderer).__name__} is not an installed plugin")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
     t0 = time.perf_counter()
     dataset, est = load_dataset_and_results(args)
     targets = load_targets(args.targets) if args.targets else None
     renderer = _renderer(args.renderer, dataset)
-    result = evaluate(
-        dataset,
-        est,
-        targets=targets,
-        min_visib=args.min_visib,
-        renderer=renderer,  # type: ignore[arg-type]
-        vsd_delta=args.vsd_delta,
-        instance_metrics=[m.strip() for m in args.metrics.split(",") if m.strip()],
-        progress=not args.no_progress,
-    )
+    options = {
+        "min_visib": args.min_visib,
+        "vsd_delta": args.vsd_delta,
+        "instance_metrics": [m.strip() for m in args.metrics.split(",") if m.strip()],
+    }
+    if args.executor == "local" and args.workers == 1:
+        result = evaluate(
+            dataset,
+            est,
+            targets=targets,
+            renderer=renderer,
+            progress=not args.no_progress,
+            **options,
+        )
+    else:  # scenes in parallel: each worker loads the renderer plugin itself
+        result = evaluate_distributed(
+            dataset,
+            est,
+            executor=make_executor(
+                args.executor, workers=args.workers, ray_address=args.ray_address
+            ),
+            targets=targets,
+            renderer_name=_renderer_name(renderer),
+            progress=not args.no_progress,
+            **options,
+        )
     meta = {
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),

@@ -98,6 +98,9 @@ def run_demo(args: argparse.Namespace) -> int:
             vsd_delta=15.0,
             metrics=",".join(INSTANCE_METRICS),
             rerun=str(out / "eval" / "demo.rrd") if _has_rerun() else None,
+            executor="local",
+            workers=1,
+            ray_address=None,
             no_progress=False,
         )
     )

@@ -25,3 +25,21 @@ def load_dataset_and_results(args: argparse.Namespace) -> tuple[BopDataset, Pose
     images = {(s, i) for s in dataset.scene_ids for i in dataset.scene(s).camera}
     check_results_against_dataset(est, results_path, images=images, obj_ids=set(dataset.obj_ids))
     return dataset, est
+
+
+def add_executor_args(p: argparse.ArgumentParser, *, unit: str) -> None:
+    """``--executor local|ray --workers N --ray-address ADDR`` (see bopsurg.executors)."""
+    p.add_argument(
+        "--executor",
+        choices=("local", "ray"),
+        default="local",
+        help=f"where the {unit}s run: local worker processes (default) or a Ray cluster "
+        "(pip install bopsurg[ray]; datasets on a path every node sees)",
+    )
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default: 1)")
+    p.add_argument(
+        "--ray-address",
+        default=None,
+        metavar="HOST:PORT",
+        help="Ray cluster to join (default: start a local Ray instance)",
+    )

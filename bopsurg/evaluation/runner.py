@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +39,8 @@ from bopsurg.evaluation.ambiguity import ambiguity_splits, instance_ambiguity
 from bopsurg.evaluation.matching import greedy_match, valid_gts_localization
 from bopsurg.evaluation.summary import paper_summary
 from bopsurg.evaluation.tables import GtTable, estimates_frame, load_gt_table, rank_within_groups
-from bopsurg.plugins import DepthRenderer
+from bopsurg.executors import Executor
+from bopsurg.plugins import DepthRenderer, load_plugin
 
 log = logging.getLogger(__name__)
 
@@ -204,8 +205,8 @@ def _bop19(
     renderer: DepthRenderer | None,
     vsd_delta: float,
     progress: bool,
-) -> tuple[dict[str, float], dict[str, bop19.RecallCurve]]:
-    """Matching 2: BOP19 recall curves and AR under the reference toolkit's rules."""
+) -> dict[str, bop19.RecallCurve]:
+    """Matching 2: BOP19 recall curves under the reference toolkit's rules."""
     tdf = pd.DataFrame(
         {
             "scene_id": [t.scene_id for t in targets],
@@ -262,16 +263,7 @@ def _bop19(
         curve.extra["delta_mm"] = vsd_delta
         curves["vsd"] = curve
 
-    scores: dict[str, float] = {}
-    for name in ("vsd", "mssd", "mspd"):
-        if name in curves:
-            scores[f"bop19_average_recall_{name}"] = curves[name].average_recall
-    if "vsd" in curves:
-        scores["bop19_average_recall"] = float(
-            np.mean([scores[f"bop19_average_recall_{n}"] for n in ("vsd", "mssd", "mspd")])
-        )
-    scores["bop19_average_time_per_image"] = average_time_per_image(est)
-    return scores, curves
+    return curves
 
 
 def _vsd_errors(
@@ -328,6 +320,7 @@ def evaluate(
     vsd_delta: float = bop19.VSD_DELTA_MM,
     max_sym_disc_step: float = 0.01,
     instance_metrics: Sequence[str] = INSTANCE_METRICS,
+    scene_ids: Sequence[int] | None = None,
     progress: bool = False,
 ) -> Evaluation:
     """Evaluate pose estimates on a BOP dataset split.
@@ -343,32 +336,146 @@ def evaluate(
         max_sym_disc_step: Discretisation of continuous symmetries (BOP: 0.01).
         instance_metrics: Metrics of errors.csv (subset of :data:`INSTANCE_METRICS`; MSSD is
             always computed since it decides the matching; left-out columns stay empty).
+        scene_ids: Evaluate only these scenes (their GT, estimates and targets).
         progress: Show progress bars.
 
     Returns:
         The :class:`Evaluation`.
     """
-    models = _ModelCache(dataset, max_sym_disc_step)
-    gt = load_gt_table(dataset)
-    if targets is None:
-        targets = dataset.targets()
     unknown = set(instance_metrics) - set(INSTANCE_METRICS)
     if unknown:
         raise BopsurgError(
             f"unknown metric(s) {sorted(unknown)}; choose from {', '.join(INSTANCE_METRICS)}"
         )
+    models = _ModelCache(dataset, max_sym_disc_step)
+    gt = load_gt_table(dataset, scene_ids)
+    if targets is None:
+        targets = dataset.targets()
+    if scene_ids is not None:
+        keep = set(scene_ids)
+        targets = [t for t in targets if t.scene_id in keep]
+        estimates = estimates.subset(np.isin(estimates.scene_id, sorted(keep)))
     errors, gt_rows = _instance_matching(estimates, gt, models, instance_metrics)
     amb = instance_ambiguity(dataset, gt_rows, gt.R, gt.t, gt.K)
     gt_rows = gt_rows.join(amb)
     # errors.csv rows carry the ambiguity of the GT they were matched to
     key = ["scene_id", "im_id", "obj_id", "gt_id"]
     errors = errors.merge(gt_rows[[*key, *amb.columns]], on=key, how="left")
-    scores, curves = _bop19(estimates, gt, targets, models, dataset, renderer, vsd_delta, progress)
+    curves = _bop19(estimates, gt, targets, models, dataset, renderer, vsd_delta, progress)
+    return _assemble(errors, gt_rows, curves, estimates, min_visib)
+
+
+def _assemble(
+    errors: pd.DataFrame,
+    gt_rows: pd.DataFrame,
+    curves: dict[str, bop19.RecallCurve],
+    estimates: PoseEstimates,
+    min_visib: float,
+) -> Evaluation:
+    """Scores and summary from the per-instance rows and the recall curves."""
+    scores: dict[str, float] = {}
+    for name in ("vsd", "mssd", "mspd"):
+        if name in curves:
+            scores[f"bop19_average_recall_{name}"] = curves[name].average_recall
+    if "vsd" in curves:
+        scores["bop19_average_recall"] = float(
+            np.mean([scores[f"bop19_average_recall_{n}"] for n in ("vsd", "mssd", "mspd")])
+        )
+    scores["bop19_average_time_per_image"] = average_time_per_image(estimates)
     summary = paper_summary(gt_rows, min_visib=min_visib)
     summary["splits"] = ambiguity_splits(gt_rows[gt_rows["visib_fract"] >= min_visib])
     summary["estimates"] = len(estimates)
     summary["unmatched_estimates"] = int((errors["gt_id"] < 0).sum())
     return Evaluation(errors, gt_rows, summary, scores, curves)
+
+
+@dataclass(frozen=True)
+class EvalUnit:
+    """A group of scenes evaluated on its own (a unit for :mod:`bopsurg.executors`)."""
+
+    root: str
+    split: str
+    split_type: str | None
+    scene_ids: tuple[int, ...]
+    estimates: PoseEstimates
+    targets: tuple[Target, ...] | None
+    options: dict
+
+
+def _eval_unit(unit: EvalUnit, report: Callable[[int], None]) -> Evaluation:
+    dataset = BopDataset(unit.root, unit.split, split_type=unit.split_type)
+    opts = dict(unit.options)
+    renderer_name = opts.pop("renderer_name", None)
+    renderer = load_plugin("renderer", renderer_name)() if renderer_name else None
+    result = evaluate(
+        dataset,
+        unit.estimates,
+        targets=unit.targets,
+        scene_ids=unit.scene_ids,
+        renderer=renderer,
+        **opts,
+    )
+    report(len(unit.scene_ids))
+    return result
+
+
+def evaluate_distributed(
+    dataset: BopDataset,
+    estimates: PoseEstimates,
+    *,
+    executor: Executor,
+    targets: Sequence[Target] | None = None,
+    renderer_name: str | None = None,
+    scenes_per_unit: int = 1,
+    progress: bool = False,
+    **options: object,
+) -> Evaluation:
+    """:func:`evaluate`, split into groups of scenes run by ``executor``, then merged.
+
+    Matching is per image and recall is micro-averaged (Σ TP / Σ targets), so the merged
+    result equals :func:`evaluate`'s, number for number. Renderers do not travel between
+    processes: VSD workers load the renderer plugin ``renderer_name`` themselves.
+    """
+    if scenes_per_unit < 1:
+        raise BopsurgError("scenes_per_unit must be >= 1")
+    all_targets = list(targets) if targets is not None else dataset.targets()
+    ids = dataset.scene_ids
+    groups = [tuple(ids[i : i + scenes_per_unit]) for i in range(0, len(ids), scenes_per_unit)]
+    units = []
+    for g in groups:
+        keep = np.isin(estimates.scene_id, g)
+        units.append(
+            EvalUnit(
+                root=str(dataset.root),
+                split=dataset.split,
+                split_type=dataset.split_type,
+                scene_ids=g,
+                estimates=estimates.subset(keep),
+                targets=tuple(t for t in all_targets if t.scene_id in set(g)),
+                options={**options, "renderer_name": renderer_name},
+            )
+        )
+    with tqdm(total=len(ids), unit="scene", desc="eval", disable=not progress) as bar:
+        parts: list[Evaluation] = executor.map(_eval_unit, units, on_progress=bar.update)
+    curves: dict[str, bop19.RecallCurve] = {}
+    for name in parts[0].curves if parts else ():
+        first = parts[0].curves[name]
+        tps = np.sum([p.curves[name].tp_counts for p in parts], axis=0).tolist()
+        targets_count = int(sum(p.curves[name].targets_count for p in parts))
+        recalls = [tp / float(targets_count) if targets_count > 0 else 0.0 for tp in tps]
+        curves[name] = bop19.RecallCurve(
+            name,
+            first.thresholds,
+            recalls,
+            [int(t) for t in tps],
+            targets_count,
+            first.taus,
+            first.extra,
+        )
+    errors = pd.concat([p.errors for p in parts], ignore_index=True)
+    gt_rows = pd.concat([p.gt_rows for p in parts], ignore_index=True)
+    min_visib = float(options.get("min_visib", 0.3))  # type: ignore[arg-type]
+    return _assemble(errors, gt_rows, curves, estimates, min_visib)
 
 
 def _json_safe(value: object) -> object:

@@ -132,3 +132,20 @@ def test_outputs_are_standard_json_when_nothing_matches(example, tmp_path):
     text = (tmp_path / "summary.json").read_text()
     assert "NaN" not in text
     assert json.loads(text)["table"]["re"]["mean"] is None
+
+
+def test_distributed_evaluation_equals_the_single_pass(example, tmp_path):
+    from bopsurg.evaluation.runner import evaluate_distributed
+    from bopsurg.executors import LocalExecutor
+
+    _, ds, est = example
+    one = evaluate(ds, est)
+    for workers in (1, 2):
+        parts = evaluate_distributed(ds, est, executor=LocalExecutor(workers))
+        assert parts.scores == one.scores
+        pd.testing.assert_frame_equal(parts.errors, one.errors)
+        a, b = tmp_path / f"one{workers}", tmp_path / f"parts{workers}"
+        write_evaluation(one, a)
+        write_evaluation(parts, b)
+        for name in ("errors.csv", "summary.json", "scores.json"):
+            assert (a / name).read_bytes() == (b / name).read_bytes()
