@@ -73,22 +73,19 @@ def make_amodal(settings: GenerateSettings, out: str | Path) -> AmodalRenderer |
     return AmodalRenderer(load_plugin("renderer", settings.renderer)(), Path(out) / "models")
 
 
-# -- the unit of work, wherever it runs: one backend and renderer per process, reused ------
-_STATE: dict[tuple[str, str], tuple[object, AmodalRenderer | None]] = {}
-
-
+# -- the unit of work, wherever it runs ----------------------------------------------------
 def _replay_unit(unit: ReplayUnit, report: Callable[[int], None]) -> ReplayResult:
-    """Run one replay with this process's backend for the unit's settings (made once)."""
-    key = (json.dumps(unit.settings.to_json(), sort_keys=True), unit.out)
-    if key not in _STATE:
-        _STATE[key] = (make_backend(unit.settings), make_amodal(unit.settings, unit.out))
-    backend, amodal = _STATE[key]
-    return run_replay(unit, backend, _read_bag, amodal=amodal, on_frame=report)  # type: ignore[arg-type]
+    """Run one replay with a backend and renderer of its own.
 
-
-def _close_state() -> None:
-    while _STATE:
-        backend, _ = _STATE.popitem()[1]
+    A fresh backend per replay: PyBullet's TinyRenderer output can depend, by a pixel, on
+    what the same client rendered before, so sharing one across replays would make the bytes
+    depend on which worker ran which replays. (Textures are cached, so this costs ~0.2 s.)
+    """
+    backend = make_backend(unit.settings)
+    try:
+        amodal = make_amodal(unit.settings, unit.out)
+        return run_replay(unit, backend, _read_bag, amodal=amodal, on_frame=report)  # type: ignore[arg-type]
+    finally:
         backend.close()  # type: ignore[attr-defined]
 
 
@@ -210,7 +207,6 @@ def generate_dataset(
             bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
     finally:
         bar.close()
-        _close_state()
     scene_ids = [u.scene_id for u in units]
     _write_targets(out, split, scene_ids)
     return GenerateReport(

@@ -32,6 +32,7 @@ model frame is the part frame above.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -403,6 +404,13 @@ def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], sigma: float
     return (n / max(float(n.std()), 1e-6)).astype(np.float64)
 
 
+def _frozen(a: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """Read-only, so a cached texture cannot be changed by a caller."""
+    a.flags.writeable = False
+    return a
+
+
+@functools.lru_cache(maxsize=4)  # a backend per replay: build each texture once per process
 def skin_texture(seed: int = 0, size: tuple[int, int] = (1024, 768)) -> NDArray[np.uint8]:
     """Pink-red tissue texture of the pad top, (H, W, 3) uint8 RGB.
 
@@ -448,9 +456,10 @@ def skin_texture(seed: int = 0, size: tuple[int, int] = (1024, 768)) -> NDArray[
     y = 0.5 * PAD_SIZE[1] - (np.arange(h) + 0.5) / h * PAD_SIZE[1]  # row 0 is the +y edge
     cut = pad_height(x[None, :], y[:, None]) < -0.5
     img[cut] = img[cut] * 0.35 + 0.65 * np.array([0.45, 0.10, 0.11])
-    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return _frozen((np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
 
 
+@functools.lru_cache(maxsize=4)
 def drape_texture(seed: int = 0, size: int = 1024) -> NDArray[np.uint8]:
     """Blue-green surgical drape texture, (size, size, 3) uint8 RGB (weave and folds)."""
     rng = np.random.default_rng(seed + 1)
@@ -463,7 +472,7 @@ def drape_texture(seed: int = 0, size: int = 1024) -> NDArray[np.uint8]:
         + 0.03 * rng.standard_normal((size, size))
     )
     img = np.array([0.20, 0.47, 0.52])[None, None, :] * shade[..., None]
-    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return _frozen((np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
 
 
 # -------------------------------------------------------------------------------- scene

@@ -288,7 +288,11 @@ def run_replay(
     objects = backend.annotated_objects()
     K = np.array(settings.K, dtype=np.float64)
     rendered = 0
-    for k in range(start, len(times)):
+    # On resume the earlier frames are rendered again, unwritten: TinyRenderer's output can
+    # depend (by a pixel) on what it rendered before, and this keeps a resumed replay
+    # byte-identical to an uninterrupted one.
+    for k in range(len(times)):
+        warm_up = k < start
         state = recording.state_at(float(times[k]))  # type: ignore[attr-defined]
         state = SceneState(
             psm_joints=state.psm_joints,
@@ -298,6 +302,16 @@ def run_replay(
         )
         backend.set_state(state)
         frame = backend.render(camera, light)
+        if warm_up:
+            for name, obj_id in objects:  # the object-alone renderer's history too
+                if amodal is not None:
+                    R, t = _pose_mm(T_world_cam, backend.object_pose(name))
+                    amodal.render(
+                        obj_id, R, t, camera_large.K, camera_large.width, camera_large.height
+                    )
+                else:
+                    backend.render_object_depth(name, camera_large)
+            continue
         rendered += 1
         # The depth as it will be read back from the PNG: visibility is computed on it.
         depth_units = np.rint(frame.depth / settings.depth_scale)

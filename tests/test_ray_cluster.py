@@ -1,0 +1,167 @@
+"""`generate` and `eval` on a real two-node Ray cluster give the local executor's bytes, and a
+worker killed mid-run loses nothing.
+
+The cluster (a head and a second node, separate processes) runs inside a network namespace
+made by the test with only its loopback interface up, so every connection stays on
+127.0.0.1 (this workplace allows no traffic to other addresses). Needs root and iproute2;
+skipped otherwise.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.results import PoseEstimates, save_results
+from bopsurg.cli.main import main
+
+pytest.importorskip("ray")
+pytest.importorskip("pybullet")
+
+BIN = Path(sys.executable).parent
+PORT = 6391
+
+
+def _netns_available() -> bool:
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        return False
+    name = f"bopsurg-probe-{uuid.uuid4().hex[:6]}"
+    ok = subprocess.run(["ip", "netns", "add", name], capture_output=True).returncode == 0
+    if ok:
+        subprocess.run(["ip", "netns", "del", name], capture_output=True)
+    return ok
+
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(not _netns_available(), reason="needs root and ip netns"),
+]
+
+
+class Cluster:
+    """A head and a worker node (1 CPU each) in a fresh network namespace."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.ns = f"bopsurg-ray-{uuid.uuid4().hex[:6]}"
+        self.tmp = Path("/tmp") / f"rb{uuid.uuid4().hex[:6]}"  # short: socket path limits
+        self.env = {
+            **os.environ,
+            "PATH": f"{BIN}:{os.environ['PATH']}",
+            "RAY_USAGE_STATS_ENABLED": "0",
+        }
+        subprocess.run(["ip", "netns", "add", self.ns], check=True)
+        self.sh("ip link set lo up")
+        common = "--num-cpus=1 --disable-usage-stats --node-ip-address=127.0.0.1"
+        head = f"--head --port={PORT} --include-dashboard=false --temp-dir={self.tmp}"
+        self.sh(f"ray start {head} {common}")
+        self.sh(f"ray start --address=127.0.0.1:{PORT} {common}")
+
+    def sh(self, cmd: str, *, check: bool = True, background: bool = False):
+        args = ["ip", "netns", "exec", self.ns, "bash", "-c", cmd]
+        if background:
+            return subprocess.Popen(
+                args, env=self.env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+            )
+        return subprocess.run(args, env=self.env, check=check, capture_output=True, text=True)
+
+    def close(self) -> None:
+        self.sh("ray stop --force", check=False)
+        subprocess.run(["ip", "netns", "del", self.ns], capture_output=True)
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    c = Cluster(tmp_path_factory.mktemp("ray"))
+    yield c
+    c.close()
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bag") / "a.bag"
+    assert main(["record", "--out", str(path), "--seed", "4", "--duration", "4"]) == 0
+    return path
+
+
+def _digest(root: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "bopsurg_generate.json"
+    }
+
+
+GEN = ["--replays", "3", "--period", "1.0", "--seed", "9", "--no-progress"]
+
+
+def test_generate_and_eval_on_ray_equal_local(cluster, bag, tmp_path):
+    local, remote = tmp_path / "local", tmp_path / "ray"
+    assert main(["generate", str(bag), "--out", str(local), *GEN]) == 0
+    r = cluster.sh(
+        f"bopsurg generate {bag} --out {remote} {' '.join(GEN)} "
+        f"--executor ray --ray-address 127.0.0.1:{PORT}"
+    )
+    assert "3 scenes" in r.stdout
+    assert _digest(remote) == _digest(local)
+
+    d = BopDataset(local, "test")
+    rows = [(s, i, g) for s in d.scene_ids for i, gl in d.scene(s).gt.items() for g in gl]
+    n = len(rows)
+    est = PoseEstimates.from_arrays(
+        scene_id=np.array([x[0] for x in rows]),
+        im_id=np.array([x[1] for x in rows]),
+        obj_id=np.array([x[2].obj_id for x in rows]),
+        score=np.ones(n),
+        R=np.stack([x[2].R for x in rows]),
+        t=np.stack([x[2].t for x in rows]) + 0.5,
+        time=np.full(n, 0.05),
+    )
+    results = tmp_path / "r_needle-test.csv"
+    save_results(results, est)
+    assert (
+        main(
+            ["eval", str(local), str(results), "--out", str(tmp_path / "ev_local"), "--no-progress"]
+        )
+        == 0
+    )
+    cluster.sh(
+        f"bopsurg eval {local} {results} --out {tmp_path / 'ev_ray'} --no-progress "
+        f"--executor ray --ray-address 127.0.0.1:{PORT}"
+    )
+    for name in ("errors.csv", "summary.json", "scores.json"):
+        a = (tmp_path / "ev_local" / name).read_text()
+        b = (tmp_path / "ev_ray" / name).read_text()
+        if name == "summary.json":  # the results path differs only in the metadata
+            a, b = a.replace(str(local), "X"), b.replace(str(local), "X")
+        assert a == b, name
+
+
+def test_worker_killed_mid_run_loses_nothing(cluster, bag, tmp_path):
+    local, remote = tmp_path / "local", tmp_path / "ray"
+    args = ["--replays", "4", "--period", "0.5", "--seed", "11", "--no-progress"]
+    assert main(["generate", str(bag), "--out", str(local), *args]) == 0
+    proc = cluster.sh(
+        f"bopsurg generate {bag} --out {remote} {' '.join(args)} "
+        f"--executor ray --ray-address 127.0.0.1:{PORT}",
+        background=True,
+    )
+    # Wait until a replay is under way, then kill the worker process running one.
+    deadline = time.time() + 120
+    while time.time() < deadline and not list(remote.glob("test/*/rgb/*")):
+        time.sleep(0.2)
+    killed = cluster.sh("pkill -9 -f 'ray::_ray_call'", check=False)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err.decode()[-2000:]
+    assert killed.returncode == 0, "no running replay task was found to kill"
+    assert _digest(remote) == _digest(local)
