@@ -10,12 +10,7 @@ skipped otherwise.
 from __future__ import annotations
 
 import hashlib
-import os
-import shutil
-import subprocess
-import sys
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -24,65 +19,21 @@ import pytest
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.cli.main import main
+from tests.ray_netns import PORT, Cluster, netns_available
 
 pytest.importorskip("ray")
 pytest.importorskip("pybullet")
 
-BIN = Path(sys.executable).parent
-PORT = 6391
-
-
-def _netns_available() -> bool:
-    if os.geteuid() != 0 or shutil.which("ip") is None:
-        return False
-    name = f"bopsurg-probe-{uuid.uuid4().hex[:6]}"
-    ok = subprocess.run(["ip", "netns", "add", name], capture_output=True).returncode == 0
-    if ok:
-        subprocess.run(["ip", "netns", "del", name], capture_output=True)
-    return ok
-
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(not _netns_available(), reason="needs root and ip netns"),
+    pytest.mark.skipif(not netns_available(), reason="needs root and ip netns"),
 ]
-
-
-class Cluster:
-    """A head and a worker node (1 CPU each) in a fresh network namespace."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.ns = f"bopsurg-ray-{uuid.uuid4().hex[:6]}"
-        self.tmp = Path("/tmp") / f"rb{uuid.uuid4().hex[:6]}"  # short: socket path limits
-        self.env = {
-            **os.environ,
-            "PATH": f"{BIN}:{os.environ['PATH']}",
-            "RAY_USAGE_STATS_ENABLED": "0",
-        }
-        subprocess.run(["ip", "netns", "add", self.ns], check=True)
-        self.sh("ip link set lo up")
-        common = "--num-cpus=1 --disable-usage-stats --node-ip-address=127.0.0.1"
-        head = f"--head --port={PORT} --include-dashboard=false --temp-dir={self.tmp}"
-        self.sh(f"ray start {head} {common}")
-        self.sh(f"ray start --address=127.0.0.1:{PORT} {common}")
-
-    def sh(self, cmd: str, *, check: bool = True, background: bool = False):
-        args = ["ip", "netns", "exec", self.ns, "bash", "-c", cmd]
-        if background:
-            return subprocess.Popen(
-                args, env=self.env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-            )
-        return subprocess.run(args, env=self.env, check=check, capture_output=True, text=True)
-
-    def close(self) -> None:
-        self.sh("ray stop --force", check=False)
-        subprocess.run(["ip", "netns", "del", self.ns], capture_output=True)
-        shutil.rmtree(self.tmp, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    c = Cluster(tmp_path_factory.mktemp("ray"))
+    c = Cluster(nodes=2)
     yield c
     c.close()
 

@@ -124,6 +124,9 @@ def _renderer_name(renderer: object | None) -> str | None:
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
     t0 = time.perf_counter()
+    executor = None
+    if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
+        executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
     dataset, est = load_dataset_and_results(args)
     targets = load_targets(args.targets) if args.targets else None
     renderer = _renderer(args.renderer, dataset)
@@ -132,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         "vsd_delta": args.vsd_delta,
         "instance_metrics": [m.strip() for m in args.metrics.split(",") if m.strip()],
     }
-    if args.executor == "local" and args.workers == 1:
+    if executor is None:
         result = evaluate(
             dataset,
             est,

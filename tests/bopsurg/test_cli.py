@@ -102,3 +102,19 @@ def test_demo_runs(tmp_path, capsys):
     assert "[3/3] bopsurg eval" in out
     assert "RE [deg]" in out
     assert (tmp_path / "eval" / "summary.json").exists()
+
+
+def test_ray_executor_without_ray_is_a_one_line_hint(example, tmp_path, capsys, monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_ray(name, *args, **kwargs):
+        if name == "ray" or name.startswith("ray."):
+            raise ImportError("No module named 'ray'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_ray)
+    args = ["-q", "eval", str(example.root), str(example.results), "--out", str(tmp_path)]
+    assert main([*args, "--executor", "ray"]) == 2
+    assert "pip install 'bopsurg[ray]'" in _one_line_error(capsys)
