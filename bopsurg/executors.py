@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import queue as queue_mod
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
@@ -134,8 +135,32 @@ class RayExecutor:
                 ray.shutdown()
 
 
+class _BatchedReport:
+    """Counts progress locally and sends it at most every ``interval`` seconds: each send is
+    a call to the queue actor, which shares the cores with the work."""
+
+    def __init__(self, progress: Any, interval: float = 0.5) -> None:
+        self.progress, self.interval = progress, interval
+        self.pending, self.last = 0, time.monotonic()
+
+    def __call__(self, n: int) -> None:
+        self.pending += n
+        if time.monotonic() - self.last >= self.interval:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.pending:
+            self.progress.put(self.pending)
+            self.pending = 0
+        self.last = time.monotonic()
+
+
 def _ray_call(fn: UnitFn, unit: Any, progress: Any) -> Any:
-    return fn(unit, lambda n: progress.put(n))
+    report = _BatchedReport(progress)
+    try:
+        return fn(unit, report)
+    finally:
+        report.flush()
 
 
 def make_executor(name: str, *, workers: int = 1, ray_address: str | None = None) -> Executor:
