@@ -100,7 +100,8 @@ def test_generate_and_eval_on_ray_equal_local(cluster, bag, tmp_path):
 
 def test_worker_killed_mid_run_loses_nothing(cluster, bag, tmp_path):
     local, remote = tmp_path / "local", tmp_path / "ray"
-    args = ["--replays", "4", "--period", "0.5", "--seed", "11", "--no-progress"]
+    # enough work per replay that one is surely running when the worker is killed
+    args = ["--replays", "4", "--period", "0.25", "--seed", "11", "--no-progress"]
     assert main(["generate", str(bag), "--out", str(local), *args]) == 0
     proc = cluster.sh(
         f"bopsurg generate {bag} --out {remote} {' '.join(args)} "
