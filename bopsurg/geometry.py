@@ -74,14 +74,6 @@ def as_intrinsics(K: ArrayLike, n: int, name: str = "K") -> F64:
     return _finite(a, name)
 
 
-def same_length(n_expected: int, **arrays: F64) -> int:
-    """Check that every batched array has ``n_expected`` rows, broadcasting N = 1."""
-    for name, a in arrays.items():
-        if a.shape[0] not in (1, n_expected):
-            raise ShapeError(f"batch size {a.shape[0]} does not match {n_expected}", field=name)
-    return n_expected
-
-
 def batch_size(*arrays: F64) -> int:
     """The common batch size of arrays whose first axis is N or 1."""
     n = max(a.shape[0] for a in arrays)

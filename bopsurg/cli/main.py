@@ -78,10 +78,6 @@ def _unavailable(name: str, reason: str):
     return run
 
 
-class _UserError(SystemExit):
-    pass
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the exit code (0 ok, 1 problems found, 2 user error)."""
     parser = build_parser()
