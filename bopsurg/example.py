@@ -34,8 +34,8 @@ from bopsurg.bop.scene import (
     save_scene_gt_info,
 )
 from bopsurg.bop.targets import enumerate_targets, save_targets
-from bopsurg.geometry import project_pts
 from bopsurg.needle import NeedleSpec, needle_keypoints, needle_mesh
+from bopsurg.silhouette import project_silhouette
 from bopsurg.visibility import instance_visibility_from_masks
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,6 @@ WIDTH, HEIGHT = 640, 480
 #: Endoscope intrinsics from a vertical FOV of 1.2 rad at 640×480 (surgical_scene_facts).
 FY = (HEIGHT / 2) / np.tan(0.6)
 DEFAULT_K = np.array([[FY, 0.0, WIDTH / 2], [0.0, FY, HEIGHT / 2], [0.0, 0.0, 1.0]])
-_SUBPIXEL_BITS = 4
 
 
 @dataclass(frozen=True)
@@ -89,12 +88,7 @@ def _fill_silhouette(model: ObjectModel, K: np.ndarray, R: np.ndarray, t: np.nda
     Kl = K.copy()
     Kl[0, 2] += WIDTH
     Kl[1, 2] += HEIGHT
-    uv = project_pts(model.pts, Kl[None], R[None], t[None])[0]
-    canvas = np.zeros((3 * HEIGHT, 3 * WIDTH), dtype=np.uint8)
-    pts = np.round(uv * (1 << _SUBPIXEL_BITS)).astype(np.int32)
-    for tri in model.faces:
-        cv2.fillConvexPoly(canvas, pts[tri], 255, lineType=cv2.LINE_8, shift=_SUBPIXEL_BITS)
-    return canvas > 0
+    return project_silhouette(model.pts, model.faces, Kl, R, t, (3 * HEIGHT, 3 * WIDTH))
 
 
 def _shaft_mask(rng: np.random.Generator, target: np.ndarray) -> np.ndarray:

@@ -43,7 +43,7 @@ from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.bop.results import PoseEstimates
 from bopsurg.errors import BopsurgError
 from bopsurg.evaluation.summary import format_table
-from bopsurg.geometry import project_pts
+from bopsurg.silhouette import is_closed, project_silhouette
 
 if TYPE_CHECKING:
     from bopsurg.evaluation.runner import Evaluation
@@ -62,7 +62,6 @@ GT_COLOR = (40, 90, 255)
 EST_COLOR = (0, 220, 0)
 JPEG_QUALITY = 85
 HIST_BINS = 30
-_SHIFT = 4  # sub-pixel bits for cv2.fillConvexPoly
 
 
 def _import_rerun() -> Any:
@@ -126,47 +125,6 @@ def select_image_frames(mssd: np.ndarray, max_frames: int | None = None) -> np.n
         rest[np.linspace(0, len(rest) - 1, n_uniform).round().astype(int)] if n_uniform else []
     )
     return np.union1d(worst, uniform).astype(np.int64)
-
-
-def _is_closed(faces: np.ndarray) -> bool:
-    """Whether every edge of the mesh is shared by exactly two triangles (a closed surface)."""
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    return bool(len(counts)) and bool(np.all(counts == 2))
-
-
-def _silhouette(
-    pts: np.ndarray,
-    faces: np.ndarray,
-    K: np.ndarray,
-    R: np.ndarray,
-    t: np.ndarray,
-    shape: tuple[int, int],
-    closed: bool = False,
-) -> np.ndarray:
-    """Model silhouette at pose (R, t mm) under K (px): (H, W) uint8, 1 = object.
-
-    For a closed mesh the triangles of one winding sign in the image already cover the
-    silhouette (every silhouette ray crosses the surface entering and leaving), so only those
-    are filled: half the work.
-    """
-    mask = np.zeros(shape, np.uint8)
-    if t[2] <= 0:
-        return mask
-    uv = project_pts(pts, K[None], R[None], t[None])[0]
-    if not np.all(np.isfinite(uv)):
-        return mask
-    h, w = shape
-    uv = np.clip(uv, -4 * max(h, w), 4 * max(h, w))  # keep the fixed-point coordinates in range
-    tri = np.round(uv * (1 << _SHIFT)).astype(np.int32)[faces]
-    if closed:
-        d1 = (tri[:, 1] - tri[:, 0]).astype(np.int64)
-        d2 = (tri[:, 2] - tri[:, 0]).astype(np.int64)
-        cross = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
-        tri = tri[cross > 0] if (cross > 0).sum() <= (cross < 0).sum() else tri[cross < 0]
-    for poly in tri:
-        cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=_SHIFT)
-    return mask
 
 
 def _blueprint(rrb: Any) -> Any:
@@ -358,7 +316,7 @@ def _log_images(
     def model(obj_id: int) -> Any:
         if obj_id not in models:
             mdl = models[obj_id] = dataset.model(obj_id)
-            closed[obj_id] = _is_closed(mdl.faces)
+            closed[obj_id] = is_closed(mdl.faces)
             # The mesh once (static, model frame, mm); each frame only moves its instances.
             for kind, color in (("gt", GT_COLOR), ("est", EST_COLOR)):
                 rec.log(
@@ -415,12 +373,16 @@ def _log_images(
                     gt_mask[m] = 1
                     continue
             mdl = model(g.obj_id)
-            gt_mask |= _silhouette(mdl.pts, mdl.faces, K, g.R, g.t, (h, w), closed[g.obj_id])
+            gt_mask |= project_silhouette(
+                mdl.pts, mdl.faces, K, g.R, g.t, (h, w), closed=closed[g.obj_id]
+            )
         for e in est_groups.get((s, im), []):
             o = int(est.obj_id[e])
             est_poses.setdefault(o, []).append((est.R[e], est.t[e]))
             mdl = model(o)
-            est_mask |= _silhouette(mdl.pts, mdl.faces, K, est.R[e], est.t[e], (h, w), closed[o])
+            est_mask |= project_silhouette(
+                mdl.pts, mdl.faces, K, est.R[e], est.t[e], (h, w), closed=closed[o]
+            )
         rec.log(
             "world/camera/gt_silhouette",
             rr.SegmentationImage(gt_mask, opacity=0.45, draw_order=1.0),
