@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.dataset import BopDataset, save_camera_json
 from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import (
     PoseEstimates,
@@ -35,7 +35,7 @@ from bopsurg.bop.scene import (
 )
 from bopsurg.bop.targets import enumerate_targets, save_targets
 from bopsurg.evaluation.runner import INSTANCE_METRICS, evaluate, write_evaluation
-from bopsurg.example import DEFAULT_K, camera_json
+from bopsurg.example import DEFAULT_K
 from bopsurg.needle import needle_mesh
 
 
@@ -44,7 +44,7 @@ def build(root: Path, n: int, seed: int) -> Path:
     model = needle_mesh()
     save_ply(root / "models" / "obj_000001.ply", model)
     save_models_info(root / "models" / "models_info.json", {1: compute_model_info(model.pts)})
-    (root / "camera.json").write_text(camera_json())
+    save_camera_json(root, DEFAULT_K, 640, 480, depth_scale=0.1)
     per_scene = 1000
     R = Rotation.random(n, random_state=rng).as_matrix()
     t = np.c_[rng.uniform(-20, 20, n), rng.uniform(-15, 15, n), rng.uniform(60, 160, n)]

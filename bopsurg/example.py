@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bopsurg.atomic import write_text
+from bopsurg.bop.dataset import save_camera_json
 from bopsurg.bop.images import save_mask, save_rgb
 from bopsurg.bop.models import ObjectModel, compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import PoseEstimates, save_results
@@ -34,6 +35,7 @@ from bopsurg.bop.scene import (
     save_scene_gt_info,
 )
 from bopsurg.bop.targets import enumerate_targets, save_targets
+from bopsurg.geometry import intrinsics_from_fov
 from bopsurg.needle import NeedleSpec, needle_keypoints, needle_mesh
 from bopsurg.silhouette import project_silhouette
 from bopsurg.visibility import instance_visibility_from_masks
@@ -43,8 +45,8 @@ log = logging.getLogger(__name__)
 NEEDLE_OBJ_ID = 1
 WIDTH, HEIGHT = 640, 480
 #: Endoscope intrinsics from a vertical FOV of 1.2 rad at 640×480 (surgical_scene_facts).
-FY = (HEIGHT / 2) / np.tan(0.6)
-DEFAULT_K = np.array([[FY, 0.0, WIDTH / 2], [0.0, FY, HEIGHT / 2], [0.0, 0.0, 1.0]])
+DEFAULT_K = intrinsics_from_fov(WIDTH, HEIGHT, 1.2)
+FY = float(DEFAULT_K[1, 1])
 
 
 @dataclass(frozen=True)
@@ -67,20 +69,6 @@ class ExampleDataset:
     root: Path
     split: str
     results: Path
-
-
-def camera_json(K: np.ndarray = DEFAULT_K, depth_scale: float = 0.1) -> str:
-    """The dataset's ``camera.json`` (BOP: fx, fy, cx, cy, width, height, depth_scale)."""
-    camera = {
-        "cx": float(K[0, 2]),
-        "cy": float(K[1, 2]),
-        "depth_scale": depth_scale,
-        "fx": float(K[0, 0]),
-        "fy": float(K[1, 1]),
-        "height": HEIGHT,
-        "width": WIDTH,
-    }
-    return json.dumps(camera, indent=2, sort_keys=True) + "\n"
 
 
 def _fill_silhouette(model: ObjectModel, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -153,7 +141,7 @@ def write_example_dataset(out_dir: str | Path, spec: ExampleSpec | None = None) 
     save_ply(root / "models" / f"obj_{NEEDLE_OBJ_ID:06d}.ply", model)
     info = {**compute_model_info(model.pts), **needle_keypoints(model)}
     save_models_info(root / "models" / "models_info.json", {NEEDLE_OBJ_ID: info})
-    write_text(root / "camera.json", camera_json())
+    save_camera_json(root, DEFAULT_K, WIDTH, HEIGHT, depth_scale=0.1)
 
     est_rows: list[tuple[int, int, float, np.ndarray, np.ndarray, float]] = []
     all_gt: dict[int, dict[int, list[GtPose]]] = {}

@@ -179,3 +179,13 @@ def depth_to_distance(depth: ArrayLike, K: ArrayLike, origin: tuple[int, int] = 
         + np.multiply(ys[:, None], d) ** 2
         + d.astype(np.float64) ** 2
     )
+
+
+def intrinsics_from_fov(width: int, height: int, fov_y: float) -> F64:
+    """Pinhole K (px) of a ``width``×``height`` camera with vertical field of view ``fov_y`` rad.
+
+    ``f = H / (2 tan(fov_y / 2))``, square pixels, principal point at the image centre
+    (the convention of the surgical simulator's cameras).
+    """
+    f = (height / 2) / np.tan(fov_y / 2)
+    return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])

@@ -10,6 +10,7 @@ import time
 from bopsurg.cli.inputs import add_executor_args
 from bopsurg.errors import InputError
 from bopsurg.executors import make_executor
+from bopsurg.geometry import intrinsics_from_fov
 
 log = logging.getLogger(__name__)
 
@@ -121,8 +122,9 @@ def _intrinsics(args: argparse.Namespace) -> tuple[tuple[float, float, float], .
     else:
         if not 0 < args.fov < math.pi:
             raise InputError("must be in (0, pi) rad", field="--fov")
-        fx = fy = (args.height / 2) / math.tan(args.fov / 2)
-        cx, cy = args.width / 2, args.height / 2
+        return tuple(
+            tuple(r) for r in intrinsics_from_fov(args.width, args.height, args.fov).tolist()
+        )
     return ((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0))
 
 

@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from bopsurg._version import __version__
 from bopsurg.atomic import write_text
+from bopsurg.bop.dataset import save_camera_json
 from bopsurg.bop.jsonio import load_json
 from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
@@ -124,17 +125,7 @@ def _write_dataset_files(
         save_models_info(out / "models" / "models_info.json", infos)
     finally:
         backend.close()  # type: ignore[attr-defined]
-    K = settings.K
-    camera = {
-        "cx": K[0][2],
-        "cy": K[1][2],
-        "depth_scale": settings.depth_scale,
-        "fx": K[0][0],
-        "fy": K[1][1],
-        "height": settings.height,
-        "width": settings.width,
-    }
-    write_text(out / "camera.json", json.dumps(camera, indent=2, sort_keys=True) + "\n")
+    save_camera_json(out, settings.K, settings.width, settings.height, settings.depth_scale)
     write_text(info_path, json.dumps(info, indent=2, sort_keys=True) + "\n")
 
 

@@ -51,6 +51,7 @@ from bopsurg.errors import InputError
 from bopsurg.generators.backend import NEEDLE, CameraSpec, RenderBackend, SceneState
 from bopsurg.generators.kinematics import ecm_camera_pose
 from bopsurg.generators.viewpoints import ReplayDraw, draw_replay, light_in_world
+from bopsurg.geometry import intrinsics_from_fov
 from bopsurg.plugins import DepthRenderer
 from bopsurg.visibility import instance_visibility
 
@@ -58,8 +59,9 @@ log = logging.getLogger(__name__)
 
 #: Default intrinsics: vertical FOV 1.2 rad at 640×480 (the simulator's endoscope).
 DEFAULT_WIDTH, DEFAULT_HEIGHT = 640, 480
-_FY = (DEFAULT_HEIGHT / 2) / np.tan(0.6)
-DEFAULT_K = ((_FY, 0.0, DEFAULT_WIDTH / 2), (0.0, _FY, DEFAULT_HEIGHT / 2), (0.0, 0.0, 1.0))
+DEFAULT_K = tuple(
+    tuple(row) for row in intrinsics_from_fov(DEFAULT_WIDTH, DEFAULT_HEIGHT, 1.2).tolist()
+)
 
 SCENE_RECORD = "bopsurg_scene.json"
 

@@ -35,7 +35,7 @@ Modules: :mod:`.jsonio` (JSON), :mod:`.scene` (scene_camera / scene_gt / scene_g
 from __future__ import annotations
 
 from bopsurg.bop.check import Problem, check_dataset
-from bopsurg.bop.dataset import BopDataset, BopScene, model_path, scene_dir
+from bopsurg.bop.dataset import BopDataset, BopScene, model_path, save_camera_json, scene_dir
 from bopsurg.bop.images import (
     image_size,
     load_depth,
@@ -102,6 +102,7 @@ __all__ = [
     "load_scene_gt_info",
     "load_targets",
     "model_path",
+    "save_camera_json",
     "save_depth",
     "save_json",
     "save_mask",

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from bopsurg.bop.images import image_size as _image_size
-from bopsurg.bop.jsonio import load_json
+from bopsurg.bop.jsonio import load_json, save_json
 from bopsurg.bop.models import ObjectModel, load_models_info, load_ply
 from bopsurg.bop.scene import (
     CameraInfo,
@@ -309,3 +309,20 @@ class BopDataset:
                 raise DatasetError("scene has no images", path=scene.scene_dir)
             self._image_sizes[sid] = _image_size(scene.rgb_path(im_ids[0]))
         return self._image_sizes[sid]
+
+
+def save_camera_json(
+    root: str | Path, K: Any, width: int, height: int, depth_scale: float | None = None
+) -> None:
+    """Write the dataset's ``camera.json`` (fx, fy, cx, cy, width, height, depth_scale)."""
+    cam: dict[str, Any] = {
+        "cx": float(K[0][2]),
+        "cy": float(K[1][2]),
+        "fx": float(K[0][0]),
+        "fy": float(K[1][1]),
+        "height": int(height),
+        "width": int(width),
+    }
+    if depth_scale is not None:
+        cam["depth_scale"] = float(depth_scale)
+    save_json(Path(root) / "camera.json", cam)

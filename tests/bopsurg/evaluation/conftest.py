@@ -10,6 +10,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from bopsurg.bop.dataset import save_camera_json
 from bopsurg.bop.models import ObjectModel, compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.bop.scene import (
@@ -21,7 +22,7 @@ from bopsurg.bop.scene import (
     save_scene_gt_info,
 )
 from bopsurg.bop.targets import enumerate_targets, save_targets
-from bopsurg.example import DEFAULT_K, camera_json
+from bopsurg.example import DEFAULT_K
 from bopsurg.needle import NeedleSpec, needle_mesh
 
 
@@ -96,7 +97,7 @@ def build_synthetic(root: Path, seed: int = 0, n_scenes: int = 2, n_images: int 
         save_scene_gt_info(sdir / "scene_gt_info.json", si)
         gts[scene_id], infos[scene_id] = sg, si
     save_targets(root / "test_targets_bop19.json", enumerate_targets(gts, infos))
-    (root / "camera.json").write_text(camera_json())
+    save_camera_json(root, DEFAULT_K, 640, 480, depth_scale=0.1)
     n = len(rows)
     est = PoseEstimates.from_arrays(
         scene_id=np.array([r[0] for r in rows], dtype=np.int64),
