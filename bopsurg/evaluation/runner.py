@@ -97,6 +97,11 @@ class _ModelCache:
     def diameter(self, obj_id: int) -> float:
         return float(self.dataset.models_info[obj_id]["diameter"])
 
+    def diameters(self, obj_ids: np.ndarray) -> np.ndarray:
+        """Diameter (mm) of each object id in ``obj_ids``, looked up once per distinct id."""
+        ids, inverse = np.unique(obj_ids, return_inverse=True)
+        return np.array([self.diameter(int(o)) for o in ids], dtype=np.float64)[inverse]
+
 
 def _pair_errors(
     est: PoseEstimates,
@@ -142,8 +147,9 @@ def _candidate_pairs(est_df: pd.DataFrame, gt: GtTable) -> pd.DataFrame:
 
 def _instance_matching(
     est: PoseEstimates, gt: GtTable, models: _ModelCache, which: Sequence[str]
-) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Matching 1 (see the module docstring): errors.csv rows and per-GT rows."""
+) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """Matching 1 (see the module docstring): errors.csv rows, per-GT rows, and the MSSD of
+    every candidate pair (columns e, g, mssd) for the BOP scores to reuse."""
     est_df = estimates_frame(est)
     rank, _ = rank_within_groups(est_df[["scene_id", "im_id", "obj_id"]], est.score)
     est_df["rank"] = rank
@@ -185,7 +191,7 @@ def _instance_matching(
 
     gt_rows = gt.frame().drop(columns="g")
     gt_rows["visib_fract"] = gt.visib_fract
-    gt_rows["diameter"] = [models.diameter(int(o)) for o in gt.obj_id] if len(gt) else []
+    gt_rows["diameter"] = models.diameters(gt.obj_id)
     gt_rows["est_row"] = -1
     gt_rows.loc[m_g, "est_row"] = m_e
     for name in INSTANCE_METRICS:
@@ -193,7 +199,8 @@ def _instance_matching(
         if name in errs:
             col[m_g] = errs[name]
         gt_rows[name] = col
-    return rows.reset_index(drop=True), gt_rows
+    pair_mssd = pd.DataFrame({"e": e_idx, "g": g_idx, "mssd": mssd_all})
+    return rows.reset_index(drop=True), gt_rows, pair_mssd
 
 
 def _bop19(
@@ -205,6 +212,7 @@ def _bop19(
     renderer: DepthRenderer | None,
     vsd_delta: float,
     progress: bool,
+    pair_mssd: pd.DataFrame,
 ) -> dict[str, bop19.RecallCurve]:
     """Matching 2: BOP19 recall curves under the reference toolkit's rules."""
     tdf = pd.DataFrame(
@@ -238,8 +246,13 @@ def _bop19(
         gt_index=pairs_df["g"].to_numpy(np.int64),
     )
     e_idx, g_idx = pairs.est_index, pairs.gt_index
-    errs = _pair_errors(est, gt, e_idx, g_idx, models, ("te", "mssd", "mspd"))
-    diam = np.array([models.diameter(int(o)) for o in gt.obj_id[g_idx]], dtype=np.float64)
+    errs = _pair_errors(est, gt, e_idx, g_idx, models, ("te", "mspd"))
+    # Every BOP pair is also a candidate pair of the instance matching: reuse its MSSD.
+    known = pd.Series(
+        pair_mssd["mssd"].to_numpy(), index=pd.MultiIndex.from_frame(pair_mssd[["e", "g"]])
+    )
+    errs["mssd"] = known.reindex(pd.MultiIndex.from_arrays([e_idx, g_idx])).to_numpy()
+    diam = models.diameters(gt.obj_id[g_idx])
     curves = {
         "mssd": bop19.recall_curve(
             pairs,
@@ -355,13 +368,15 @@ def evaluate(
         keep = set(scene_ids)
         targets = [t for t in targets if t.scene_id in keep]
         estimates = estimates.subset(np.isin(estimates.scene_id, sorted(keep)))
-    errors, gt_rows = _instance_matching(estimates, gt, models, instance_metrics)
+    errors, gt_rows, pair_mssd = _instance_matching(estimates, gt, models, instance_metrics)
     amb = instance_ambiguity(dataset, gt_rows, gt.R, gt.t, gt.K)
     gt_rows = gt_rows.join(amb)
     # errors.csv rows carry the ambiguity of the GT they were matched to
     key = ["scene_id", "im_id", "obj_id", "gt_id"]
     errors = errors.merge(gt_rows[[*key, *amb.columns]], on=key, how="left")
-    curves = _bop19(estimates, gt, targets, models, dataset, renderer, vsd_delta, progress)
+    curves = _bop19(
+        estimates, gt, targets, models, dataset, renderer, vsd_delta, progress, pair_mssd
+    )
     return _assemble(errors, gt_rows, curves, estimates, min_visib)
 
 
