@@ -116,18 +116,7 @@ def instance_visibility(
         dist_test = depth_to_distance(d_test[win], K, origin)
         visib[win] = estimate_visib_mask(dist_test, dist_model, delta, mode="bop19")
         px_valid = int(np.count_nonzero(dist_test[mask[win]] > 0))
-    silhouette_large = d_large > 0
-    px_all = int(np.count_nonzero(silhouette_large))
-    px_visib = int(np.count_nonzero(visib))
-    visible = px_visib > 0
-    info = GtInfo(
-        bbox_obj=bbox_from_mask(silhouette_large, (w, h)) if visible else EMPTY_BBOX,
-        bbox_visib=bbox_from_mask(visib) if visible else EMPTY_BBOX,
-        px_count_all=px_all,
-        px_count_valid=px_valid,
-        px_count_visib=px_visib,
-        visib_fract=visib_fract(px_visib, px_all),
-    )
+    info = _gt_info(d_large > 0, visib, px_valid)
     return InstanceVisibility(mask=mask, mask_visib=visib, info=info)
 
 
@@ -158,6 +147,12 @@ def instance_visibility_from_masks(
         )
     inside = large[h : 2 * h, w : 2 * w]
     valid = inside if depth_valid is None else inside & np.asarray(depth_valid, dtype=bool)
+    return _gt_info(large, visib, int(np.count_nonzero(valid)))
+
+
+def _gt_info(large: NDArray[np.bool_], visib: NDArray[np.bool_], px_valid: int) -> GtInfo:
+    """The scene_gt_info entry from the amodal 3× canvas silhouette and the visible mask."""
+    h, w = visib.shape
     px_all = int(np.count_nonzero(large))
     px_visib = int(np.count_nonzero(visib))
     visible = px_visib > 0
@@ -165,7 +160,7 @@ def instance_visibility_from_masks(
         bbox_obj=bbox_from_mask(large, (w, h)) if visible else EMPTY_BBOX,
         bbox_visib=bbox_from_mask(visib) if visible else EMPTY_BBOX,
         px_count_all=px_all,
-        px_count_valid=int(np.count_nonzero(valid)),
+        px_count_valid=px_valid,
         px_count_visib=px_visib,
         visib_fract=visib_fract(px_visib, px_all),
     )
