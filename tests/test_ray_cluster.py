@@ -13,12 +13,12 @@ import hashlib
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.results import PoseEstimates, save_results
+from bopsurg.bop.results import save_results
 from bopsurg.cli.main import main
+from tests.helpers import estimates_from_gt
 from tests.ray_netns import PORT, Cluster, netns_available
 
 pytest.importorskip("ray")
@@ -67,17 +67,7 @@ def test_generate_and_eval_on_ray_equal_local(cluster, bag, tmp_path):
     assert _digest(remote) == _digest(local)
 
     d = BopDataset(local, "test")
-    rows = [(s, i, g) for s in d.scene_ids for i, gl in d.scene(s).gt.items() for g in gl]
-    n = len(rows)
-    est = PoseEstimates.from_arrays(
-        scene_id=np.array([x[0] for x in rows]),
-        im_id=np.array([x[1] for x in rows]),
-        obj_id=np.array([x[2].obj_id for x in rows]),
-        score=np.ones(n),
-        R=np.stack([x[2].R for x in rows]),
-        t=np.stack([x[2].t for x in rows]) + 0.5,
-        time=np.full(n, 0.05),
-    )
+    est = estimates_from_gt(d, t_offset_mm=0.5)
     results = tmp_path / "r_needle-test.csv"
     save_results(results, est)
     assert (

@@ -13,9 +13,10 @@ import pytest
 from bopsurg.bop.check import check_dataset
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_depth, load_mask, save_depth
-from bopsurg.bop.results import PoseEstimates, save_results
+from bopsurg.bop.results import save_results
 from bopsurg.bop.scene import CameraInfo, save_scene_camera
 from bopsurg.cli.main import main
+from tests.helpers import estimates_from_gt
 
 pytest.importorskip("pybullet")
 pytest.importorskip("rosbags")
@@ -92,17 +93,7 @@ def test_annotate_reproduces_the_generators_masks_and_gt_info(generated, tmp_pat
 def test_eval_with_vsd_on_the_generated_dataset(generated, tmp_path, capsys):
     _root, _, ds = generated
     d = BopDataset(ds, "test")
-    rows = [(s, i, g) for s in d.scene_ids for i, gl in d.scene(s).gt.items() for g in gl]
-    n = len(rows)
-    est = PoseEstimates.from_arrays(
-        scene_id=np.array([r[0] for r in rows]),
-        im_id=np.array([r[1] for r in rows]),
-        obj_id=np.array([r[2].obj_id for r in rows]),
-        score=np.ones(n),
-        R=np.stack([r[2].R for r in rows]),
-        t=np.stack([r[2].t for r in rows]),
-        time=np.full(n, 0.05),
-    )
+    est = estimates_from_gt(d)
     results = tmp_path / "gt_needle-test.csv"
     save_results(results, est)
     assert (

@@ -14,6 +14,7 @@ from bopsurg.bop.results import PoseEstimates, load_results
 from bopsurg.evaluation.runner import ERROR_COLUMNS, evaluate, write_evaluation
 from bopsurg.evaluation.summary import describe, format_table
 from bopsurg.example import ExampleSpec, write_example_dataset
+from tests.helpers import estimates_from_gt
 
 
 @pytest.fixture(scope="module")
@@ -74,17 +75,7 @@ def test_table_is_described_over_visible_instances(example):
 
 def test_perfect_estimates_score_one(example):
     _, ds, _ = example
-    gts = [(s, i, g) for s in ds.scene_ids for i, gl in ds.scene(s).gt.items() for g in gl]
-    n = len(gts)
-    est = PoseEstimates.from_arrays(
-        scene_id=np.array([x[0] for x in gts], dtype=np.int64),
-        im_id=np.array([x[1] for x in gts], dtype=np.int64),
-        obj_id=np.array([x[2].obj_id for x in gts], dtype=np.int64),
-        score=np.ones(n),
-        R=np.stack([x[2].R for x in gts]),
-        t=np.stack([x[2].t for x in gts]),
-        time=np.full(n, -1.0),
-    )
+    est = estimates_from_gt(ds, time=-1.0)
     res = evaluate(ds, est)
     assert res.scores["bop19_average_recall_mssd"] == 1.0
     assert res.scores["bop19_average_recall_mspd"] == 1.0
