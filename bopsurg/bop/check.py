@@ -174,6 +174,18 @@ def _check_models(root: Path, rep: _Report) -> set[int] | None:
     return declared
 
 
+def _image_size_or_report(path: Path, what: str, rep: _Report) -> tuple[int, int] | None:
+    """(width, height) of an image file, or None after reporting why it cannot be read."""
+    if not path.is_file():
+        rep.add(path, None, f"{what} not found")
+        return None
+    try:
+        return image_size(path)
+    except InputError as e:
+        rep.error(e)
+        return None
+
+
 def _check_camera_json(root: Path, rep: _Report) -> tuple[int, int] | None:
     """Check root/camera.json if present; returns its (width, height) if valid."""
     path = root / "camera.json"
@@ -375,34 +387,16 @@ def _check_images(
     for im_id in im_ids:
         size = expected
         if has_rgb:
-            path = scene.rgb_path(im_id)
-            if not path.is_file():
-                rep.add(path, None, f"image {im_id} not found")
-            else:
-                try:
-                    got = image_size(path)
-                except InputError as e:
-                    rep.error(e)
-                    got = None
-                if got is not None and expected is not None and got != expected:
-                    rep.add(
-                        path,
-                        None,
-                        f"size {got[0]}x{got[1]} != {expected[0]}x{expected[1]} of camera.json",
-                    )
-                size = size or got
+            got = _image_size_or_report(scene.rgb_path(im_id), f"image {im_id}", rep)
+            if got is not None and expected is not None and got != expected:
+                msg = f"size {got[0]}x{got[1]} != {expected[0]}x{expected[1]} of camera.json"
+                rep.add(scene.rgb_path(im_id), None, msg)
+            size = size or got
         if has_depth:
-            path = scene.depth_path(im_id)
-            if not path.is_file():
-                rep.add(path, None, f"depth image {im_id} not found")
-            else:
-                try:
-                    got = image_size(path)
-                except InputError as e:
-                    rep.error(e)
-                    got = None
-                if got is not None and size is not None and got != size:
-                    rep.add(path, None, f"size {got[0]}x{got[1]} != image {size[0]}x{size[1]}")
+            got = _image_size_or_report(scene.depth_path(im_id), f"depth image {im_id}", rep)
+            if got is not None and size is not None and got != size:
+                msg = f"size {got[0]}x{got[1]} != image {size[0]}x{size[1]}"
+                rep.add(scene.depth_path(im_id), None, msg)
         if gts is not None and im_id in gts and any(folders):
             im_infos = infos.get(im_id) if infos is not None else None
             _check_masks(scene, im_id, im_infos, len(gts[im_id]), size, folders, rep)
