@@ -121,10 +121,15 @@ def instance_ambiguity(
         uv[uvw[..., 2] <= 0] = np.nan  # behind the camera: not visible
         rows = gt_rows.iloc[sel]
         scene_ids = rows["scene_id"].to_numpy()
-        for k, row in enumerate(rows.itertuples(index=False)):
+        # Only scenes with masks cost a file read per instance; decide that once per scene.
+        with_masks = {
+            int(sid): (dataset.scene(int(sid)).scene_dir / "mask_visib").is_dir()
+            for sid in np.unique(scene_ids)
+        }
+        masked = [sid for sid, has in with_masks.items() if has]
+        for k in np.flatnonzero(np.isin(scene_ids, masked)):
+            row = rows.iloc[k]
             scene = dataset.scene(int(scene_ids[k]))
-            if not (scene.scene_dir / "mask_visib").is_dir():
-                continue
             path = scene.mask_visib_path(int(row.im_id), int(row.gt_id))
             if not path.exists():
                 continue
