@@ -55,7 +55,25 @@ class Cluster:
             )
         return subprocess.run(args, env=self.env, check=check, capture_output=True, text=True)
 
+    def kill(self, pattern: str) -> int:
+        """SIGKILL this namespace's processes whose command line matches ``pattern``;
+        returns how many (pkill alone would reach other runs' processes too)."""
+        ours = set(
+            subprocess.run(
+                ["ip", "netns", "pids", self.ns], capture_output=True, text=True
+            ).stdout.split()
+        )
+        found = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True)
+        victims = [pid for pid in found.stdout.split() if pid in ours]
+        for pid in victims:
+            subprocess.run(["kill", "-9", pid], capture_output=True)
+        return len(victims)
+
     def close(self) -> None:
-        self.sh("ray stop --force", check=False)
+        # Kill exactly this namespace's processes: `ray stop` would also stop any other Ray
+        # cluster on the machine (another test run's, say).
+        pids = subprocess.run(["ip", "netns", "pids", self.ns], capture_output=True, text=True)
+        for pid in pids.stdout.split():
+            subprocess.run(["kill", "-9", pid], capture_output=True)
         subprocess.run(["ip", "netns", "del", self.ns], capture_output=True)
         shutil.rmtree(self.tmp, ignore_errors=True)
