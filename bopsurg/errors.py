@@ -65,3 +65,7 @@ class ModelError(InputError):
 
 class ShapeError(InputError):
     """An array given to the API has the wrong shape, dtype or non-finite values."""
+
+
+class CheckpointError(InputError):
+    """A trained-model checkpoint is missing, corrupt or does not fit its model."""

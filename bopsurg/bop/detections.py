@@ -1,0 +1,105 @@
+"""2D detection results in the BOP format (the JSON of the BOP 2D detection tasks).
+
+The file is a list of ``{"scene_id", "image_id", "category_id", "score", "bbox", "time"}``
+with ``bbox = [x, y, w, h]`` in px (COCO convention), ``category_id`` the object id and
+``time`` the detector's run time for the whole image in s (-1 = unknown). GDRNPP's test
+pipeline reads boxes in this shape, so boxes from any detector plug into ``bopsurg predict
+--boxes``; ``bopsurg predict --detections-out`` writes the boxes our detector found.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bopsurg.bop._validate import Issues, get_dict, get_float, get_floats, get_int, get_list
+from bopsurg.bop.jsonio import load_json, save_json
+from bopsurg.errors import ResultsError
+from bopsurg.estimation import Detections
+
+_KEYS = ("scene_id", "image_id", "category_id", "score", "bbox")
+
+ImageKey = tuple[int, int]
+
+
+def load_detections(path: str | Path) -> tuple[dict[ImageKey, Detections], dict[ImageKey, float]]:
+    """Load BOP 2D detections, grouped by image.
+
+    Args:
+        path: The JSON file.
+
+    Returns:
+        ``(detections, times)``: per ``(scene_id, im_id)`` the boxes (score order kept as in
+        the file) and the image's run time in s (-1 when absent).
+
+    Raises:
+        ResultsError: Missing file, bad JSON, or a bad entry (named by index and field).
+    """
+    issues = Issues(path, error=ResultsError)
+    content = load_json(path)
+    rows: dict[ImageKey, list[tuple[int, float, Any]]] = {}
+    times: dict[ImageKey, float] = {}
+    for i, entry in enumerate(get_list(content, None, issues, "a list of detections") or []):
+        d = get_dict(entry, str(i), issues, "a detection")
+        assert d is not None  # issues raises in non-collect mode
+        for key in _KEYS:
+            if key not in d:
+                issues("missing", f"{i}/{key}")
+        scene = get_int(d["scene_id"], f"{i}/scene_id", issues, minimum=0)
+        im = get_int(d["image_id"], f"{i}/image_id", issues, minimum=0)
+        obj = get_int(d["category_id"], f"{i}/category_id", issues, minimum=0)
+        score = get_float(d["score"], f"{i}/score", issues)
+        bbox = get_floats(d["bbox"], 4, f"{i}/bbox", issues, what=" [x, y, w, h]")
+        assert scene is not None
+        assert im is not None
+        assert obj is not None
+        assert score is not None
+        assert bbox is not None
+        if bbox[2] <= 0 or bbox[3] <= 0:
+            issues(f"width and height must be positive, got {bbox[2:].tolist()}", f"{i}/bbox")
+        key = (scene, im)
+        rows.setdefault(key, []).append((obj, score, bbox))
+        time = d.get("time", -1)
+        times[key] = -1.0 if time is None else get_float(time, f"{i}/time", issues) or 0.0
+    out = {
+        key: Detections(
+            np.array([r[0] for r in rs], np.int64),
+            np.array([r[1] for r in rs]),
+            np.array([r[2] for r in rs]).reshape(-1, 4),
+        )
+        for key, rs in rows.items()
+    }
+    return out, times
+
+
+def save_detections(
+    path: str | Path,
+    detections: Mapping[ImageKey, Detections],
+    times: Mapping[ImageKey, float] | None = None,
+) -> None:
+    """Write BOP 2D detections (atomically), images in ``(scene_id, im_id)`` order.
+
+    Args:
+        path: Destination JSON.
+        detections: Boxes per ``(scene_id, im_id)``.
+        times: Run time per image, s; missing images get -1.
+    """
+    entries = []
+    for scene, im in sorted(detections):
+        det = detections[(scene, im)]
+        time = -1.0 if times is None else float(times.get((scene, im), -1.0))
+        for obj, score, bbox in zip(det.obj_id, det.score, det.bbox, strict=True):
+            entries.append(
+                {
+                    "bbox": [round(float(v), 3) for v in bbox],
+                    "category_id": int(obj),
+                    "image_id": int(im),
+                    "scene_id": int(scene),
+                    "score": float(score),
+                    "time": time,
+                }
+            )
+    save_json(path, entries)

@@ -1,0 +1,176 @@
+"""What a pose estimator provides, and how ``bopsurg predict`` finds one.
+
+An estimator is any object with a :meth:`PoseEstimator.predict` method that takes one RGB image
+and its camera matrix (optionally 2D boxes from an external detector) and returns
+:class:`PosePredictions`: BOP poses (R row-major model-to-camera, t in mm) with scores. It is
+registered under the ``bopsurg.estimators`` entry-point group as a *factory*: a callable
+``factory(options: Mapping[str, str]) -> PoseEstimator``. ``bopsurg predict --estimator NAME
+--option KEY=VALUE`` passes the options (``device`` and the ``--detector``/``--pose``
+checkpoint paths are options too). A third party ships one from its own distribution::
+
+    [project.entry-points."bopsurg.estimators"]
+    mynet = "mypkg.estimator:create"
+
+The built-in ``gdrnet`` estimator (a YOLOX-like detector and a GDR-Net-like pose head) lives in
+``bopsurg.models``; the core never imports it. Results of methods that are not Python estimators
+plug in as files instead: a BOP19 results CSV goes straight to ``bopsurg eval``, and a BOP 2D
+detections JSON to ``bopsurg predict --boxes``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from bopsurg.errors import BopsurgError, ShapeError
+from bopsurg.geometry import is_rotation
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+def _column(value: ArrayLike, shape: tuple[int, ...], name: str, dtype: Any) -> NDArray[Any]:
+    a = np.asarray(value, dtype=dtype)
+    if a.size == 0:
+        a = a.reshape(shape)
+    if a.shape != shape:
+        raise ShapeError(f"expected shape {shape}, got {a.shape}", field=name)
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        raise ShapeError("contains NaN or inf", field=name)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Detections:
+    """2D detections in one image.
+
+    Attributes:
+        obj_id: (N,) int64 object ids.
+        score: (N,) float64 confidences (higher = more confident).
+        bbox: (N, 4) float64 boxes ``(x, y, w, h)`` in px, BOP/COCO convention: (x, y) is the
+            top-left corner of the top-left pixel.
+    """
+
+    obj_id: I64
+    score: F64
+    bbox: F64
+
+    def __post_init__(self) -> None:
+        n = len(np.atleast_1d(np.asarray(self.obj_id)))
+        object.__setattr__(self, "obj_id", _column(self.obj_id, (n,), "obj_id", np.int64))
+        object.__setattr__(self, "score", _column(self.score, (n,), "score", np.float64))
+        object.__setattr__(self, "bbox", _column(self.bbox, (n, 4), "bbox", np.float64))
+
+    def __len__(self) -> int:
+        return len(self.obj_id)
+
+    @classmethod
+    def empty(cls) -> Detections:
+        """No detections."""
+        return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 4)))
+
+    def subset(self, index: ArrayLike) -> Detections:
+        """The rows selected by a boolean mask or an index array."""
+        idx = np.asarray(index)
+        return Detections(self.obj_id[idx], self.score[idx], self.bbox[idx])
+
+
+@dataclass(frozen=True, eq=False)
+class PosePredictions:
+    """Pose estimates in one image.
+
+    Attributes:
+        obj_id: (N,) int64 object ids.
+        score: (N,) float64 confidences.
+        R: (N, 3, 3) float64 model-to-camera rotations (orthonormal, det +1).
+        t: (N, 3) float64 model-to-camera translations, mm.
+        bbox: (N, 4) float64 ``(x, y, w, h)`` px of the 2D box each pose came from; NaN when
+            the estimator used none.
+    """
+
+    obj_id: I64
+    score: F64
+    R: F64
+    t: F64
+    bbox: F64
+
+    def __post_init__(self) -> None:
+        n = len(np.atleast_1d(np.asarray(self.obj_id)))
+        object.__setattr__(self, "obj_id", _column(self.obj_id, (n,), "obj_id", np.int64))
+        object.__setattr__(self, "score", _column(self.score, (n,), "score", np.float64))
+        object.__setattr__(self, "R", _column(self.R, (n, 3, 3), "R", np.float64))
+        object.__setattr__(self, "t", _column(self.t, (n, 3), "t", np.float64))
+        bbox = np.asarray(self.bbox, dtype=np.float64)
+        if bbox.shape != (n, 4):  # NaN is allowed here (no box), so no finiteness check
+            raise ShapeError(f"expected shape {(n, 4)}, got {bbox.shape}", field="bbox")
+        object.__setattr__(self, "bbox", bbox)
+        if n and not is_rotation(self.R).all():
+            raise ShapeError("not a rotation matrix (orthonormal, det +1)", field="R")
+
+    def __len__(self) -> int:
+        return len(self.obj_id)
+
+    @classmethod
+    def empty(cls) -> PosePredictions:
+        """No estimates."""
+        return cls(
+            np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3, 3)), np.zeros((0, 3)),
+            np.zeros((0, 4)),
+        )  # fmt: skip
+
+
+@runtime_checkable
+class PoseEstimator(Protocol):
+    """A model-based 6D pose estimator for RGB images (BOP units: mm, px)."""
+
+    #: Object ids the estimator can find.
+    obj_ids: tuple[int, ...]
+
+    def predict(
+        self,
+        rgb: NDArray[np.uint8],
+        K: F64,
+        *,
+        obj_ids: tuple[int, ...] | None = None,
+        boxes: Detections | None = None,
+    ) -> PosePredictions:
+        """Estimate the poses of the objects in one image.
+
+        Args:
+            rgb: (H, W, 3) uint8 RGB image.
+            K: (3, 3) camera matrix, px.
+            obj_ids: Only look for these objects (the image's targets); None = all it knows.
+            boxes: 2D boxes from an external detector to use instead of its own; None = detect.
+
+        Returns:
+            The estimates, any number per object, best first within an object.
+        """
+        ...
+
+
+EstimatorFactory = Any  # Callable[[Mapping[str, str]], PoseEstimator]
+
+
+def load_estimator(name: str, options: Mapping[str, str] | None = None) -> PoseEstimator:
+    """Build the estimator registered as ``name`` in ``bopsurg.estimators``.
+
+    Args:
+        name: Entry-point name (``gdrnet`` is the built-in one).
+        options: Passed to the factory (e.g. ``{"detector": PATH, "pose": PATH, "device":
+            "cpu"}``); which keys are known is up to the estimator.
+
+    Raises:
+        BopsurgError: No such estimator, it cannot be imported, or it does not provide
+            ``predict``.
+    """
+    from bopsurg.plugins import load_plugin
+
+    factory = load_plugin("estimator", name)
+    estimator = factory(dict(options or {}))
+    if not isinstance(estimator, PoseEstimator):
+        raise BopsurgError(f"estimator {name!r} does not provide obj_ids and predict()")
+    return estimator

@@ -1,0 +1,176 @@
+"""Estimator interface, BOP detections JSON and `bopsurg predict` with a plugin estimator."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bopsurg import plugins
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.detections import load_detections, save_detections
+from bopsurg.bop.results import load_results
+from bopsurg.cli.main import main
+from bopsurg.errors import ResultsError, ShapeError
+from bopsurg.estimation import Detections, PoseEstimator, PosePredictions
+from bopsurg.example import ExampleSpec, write_example_dataset
+from bopsurg.prediction import image_targets, predict_dataset
+
+
+@pytest.fixture(scope="module")
+def example(tmp_path_factory):
+    return write_example_dataset(
+        tmp_path_factory.mktemp("example"), ExampleSpec(scenes=2, images_per_scene=4)
+    )
+
+
+class GtEstimator:
+    """Returns the GT pose shifted by 1 mm in x, one estimate per GT instance (a test oracle
+    that reads the dataset it is run on); counts its calls."""
+
+    obj_ids = (1,)
+
+    def __init__(self, dataset: BopDataset, fail_after: int | None = None) -> None:
+        self.dataset = dataset
+        self.calls = 0
+        self.fail_after = fail_after
+        self.lookup = {
+            (s, i): gts for s in dataset.scene_ids for i, gts in dataset.scene(s).gt.items()
+        }
+
+    def predict(self, rgb, K, *, obj_ids=None, boxes=None):
+        if self.fail_after is not None and self.calls >= self.fail_after:
+            raise KeyboardInterrupt  # a kill in the middle of the run
+        self.calls += 1
+        assert rgb.dtype == np.uint8
+        assert rgb.ndim == 3
+        assert K.shape == (3, 3)
+        gts = next(g for k, g in self.lookup.items() if np.array_equal(self._rgb(k), rgb))
+        if boxes is not None:
+            gts = gts[: len(boxes)]
+        n = len(gts)
+        if n == 0:
+            return PosePredictions.empty()
+        return PosePredictions(
+            np.array([g.obj_id for g in gts]),
+            np.linspace(1, 0.5, n),
+            np.stack([g.R for g in gts]).reshape(n, 3, 3),
+            np.stack([g.t + np.array([1.0, 0, 0]) for g in gts]).reshape(n, 3),
+            np.tile([10.0, 20.0, 30.0, 40.0], (n, 1)),
+        )
+
+    def _rgb(self, key):
+        from bopsurg.bop.images import load_rgb
+
+        return load_rgb(self.dataset.scene(key[0]).rgb_path(key[1]))
+
+
+def test_estimator_protocol_and_prediction_checks():
+    assert isinstance(GtEstimator.__new__(GtEstimator), PoseEstimator)
+    with pytest.raises(ShapeError, match="R"):
+        PosePredictions([1], [1.0], np.ones((1, 3, 3)), np.zeros((1, 3)), np.zeros((1, 4)))
+    with pytest.raises(ShapeError, match="t"):
+        PosePredictions([1], [1.0], np.eye(3)[None], np.full((1, 3), np.nan), np.zeros((1, 4)))
+    with pytest.raises(ShapeError, match="bbox"):
+        Detections([1, 2], [1.0, 0.5], np.zeros((1, 4)))
+    assert len(PosePredictions.empty()) == 0
+    assert len(Detections.empty()) == 0
+
+
+def test_detections_json_round_trip_and_errors(tmp_path):
+    dets = {
+        (1, 3): Detections([1, 1], [0.9, 0.2], [[1.5, 2, 30, 40], [5, 6, 7, 8]]),
+        (2, 0): Detections([2], [0.5], [[0, 0, 10, 10]]),
+    }
+    path = tmp_path / "det.json"
+    save_detections(path, dets, {(1, 3): 0.25})
+    back, times = load_detections(path)
+    assert set(back) == set(dets)
+    np.testing.assert_array_equal(back[(1, 3)].bbox, dets[(1, 3)].bbox)
+    np.testing.assert_array_equal(back[(1, 3)].score, [0.9, 0.2])
+    assert times == {(1, 3): 0.25, (2, 0): -1.0}
+    entries = json.loads(path.read_text())
+    assert set(entries[0]) == {"scene_id", "image_id", "category_id", "score", "bbox", "time"}
+    entries[1]["bbox"] = [1, 2, 3]
+    path.write_text(json.dumps(entries))
+    with pytest.raises(ResultsError, match=r"det\.json: 1/bbox"):
+        load_detections(path)
+    entries[1]["bbox"] = [1, 2, 0, 3]
+    path.write_text(json.dumps(entries))
+    with pytest.raises(ResultsError, match="positive"):
+        load_detections(path)
+
+
+def test_predict_dataset_writes_timed_results_and_resumes_after_a_kill(example, tmp_path):
+    ds = BopDataset(example.root, "test")
+    targets = image_targets(ds, (1,))
+    out = tmp_path / "res.csv"
+    with pytest.raises(KeyboardInterrupt):
+        predict_dataset(ds, GtEstimator(ds, fail_after=3), out, progress=False)
+    assert not out.exists()
+    partial = out.with_name("res.csv.partial")
+    # A kill can also tear the last line: append half a row.
+    partial.write_text(partial.read_text() + "1,5,1,0.3,1 0 0")
+    resumed = GtEstimator(ds)
+    run = predict_dataset(ds, resumed, out, detections_out=tmp_path / "d.json", progress=False)
+    assert resumed.calls == len(targets) - 3
+    assert not partial.exists()
+    est = load_results(out)
+    assert len(est) == run.estimates.__len__() > 0
+    assert run.images == len(targets)
+    assert (est.time > 0).all()
+    one_image = (est.scene_id == est.scene_id[0]) & (est.im_id == est.im_id[0])
+    assert len(set(est.time[one_image])) == 1  # BOP: one time per image
+    fresh = tmp_path / "fresh.csv"
+    predict_dataset(ds, GtEstimator(ds), fresh, progress=False)
+    clean = load_results(fresh)
+    np.testing.assert_array_equal(clean.t, est.t)
+    dets, _ = load_detections(tmp_path / "d.json")
+    assert sum(len(d) for d in dets.values()) == len(est)
+
+
+def test_predict_cli_with_a_plugin_estimator_and_external_boxes(
+    example, tmp_path, capsys, monkeypatch
+):
+    ds = BopDataset(example.root, "test")
+    seen = {}
+
+    def factory(options):
+        seen.update(options)
+        return GtEstimator(ds)
+
+    real = plugins.load_plugin
+    monkeypatch.setattr(
+        plugins,
+        "load_plugin",
+        lambda kind, name=None: factory if name == "oracle" else real(kind, name),
+    )
+    boxes = tmp_path / "boxes.json"
+    save_detections(boxes, {(1, 0): Detections([1], [0.8], [[1, 2, 3, 4]])})
+    out = tmp_path / "r.csv"
+    args = ["predict", str(example.root), "--out", str(out), "--estimator", "oracle"]
+    code = main([*args, "--option", "k=v", "--boxes", str(boxes), "--no-progress"])
+    assert code == 0
+    assert seen == {"k": "v", "device": "auto"}
+    est = load_results(out)
+    # Images without an external box get no estimate.
+    assert set(zip(est.scene_id.tolist(), est.im_id.tolist(), strict=True)) == {(1, 0)}
+    assert "next: bopsurg eval" in capsys.readouterr().out
+    assert main(["eval", str(example.root), str(out), "--out", str(tmp_path / "e")]) == 0
+
+
+def test_predict_cli_errors_are_one_line(example, tmp_path, capsys):
+    out = tmp_path / "r.csv"
+    assert main(["predict", str(example.root), "--out", str(out), "--estimator", "nope"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bopsurg: error:")
+    assert "nope" in err
+    assert "\n" not in err
+    bad = tmp_path / "b.json"
+    bad.write_text("[{]")
+    args = ["predict", str(example.root), "--out", str(out), "--boxes", str(bad)]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(bad) in err
+    assert "\n" not in err
