@@ -12,7 +12,15 @@ import sys
 from collections.abc import Sequence
 
 from bopsurg._version import __version__
-from bopsurg.cli import annotate_cmd, check_cmd, eval_cmd, example_cmd, viz_cmd
+from bopsurg.cli import (
+    annotate_cmd,
+    check_cmd,
+    demo_cmd,
+    eval_cmd,
+    example_cmd,
+    predict_cmd,
+    viz_cmd,
+)
 from bopsurg.errors import BopsurgError
 from bopsurg.plugins import available_plugins
 
@@ -47,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     verbosity.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in (eval_cmd, viz_cmd, check_cmd, annotate_cmd, example_cmd):
+    for module in (demo_cmd, predict_cmd, eval_cmd, viz_cmd, check_cmd, annotate_cmd, example_cmd):
         module.register(sub)
     _register_plugin_commands(sub)
     return parser
@@ -67,13 +75,20 @@ def _register_plugin_commands(sub: argparse._SubParsersAction) -> None:
             module.register(sub)
         except ImportError as err:
             missing = str(err)
-            p = sub.add_parser(name, help=f"(unavailable: {missing}; pip install bopsurg[sim])")
-            p.set_defaults(func=_unavailable(name, missing))
+            extra = _EXTRAS.get(name, "all")
+            p = sub.add_parser(
+                name, help=f"(unavailable: {missing}; pip install 'bopsurg[{extra}]')"
+            )
+            p.set_defaults(func=_unavailable(name, missing, extra))
 
 
-def _unavailable(name: str, reason: str):
+#: The extra that brings each built-in plugin command's dependencies.
+_EXTRAS = {"record": "sim", "generate": "sim", "train": "torch"}
+
+
+def _unavailable(name: str, reason: str, extra: str):
     def run(args: argparse.Namespace) -> int:
-        raise BopsurgError(f"'{name}' is unavailable ({reason}); install bopsurg[sim]")
+        raise BopsurgError(f"'{name}' is unavailable ({reason}); install 'bopsurg[{extra}]'")
 
     return run
 

@@ -1,0 +1,218 @@
+"""Train the YOLOX-like detector on the ``bbox_visib`` boxes of a BOP split.
+
+Recipe (the YOLOX recipe scaled to a CPU and a few thousand synthetic frames, see
+``notes/estimators.md`` 2.6 and 2.8): AdamW, quadratic warm-up then cosine to 5 %, weight
+decay on conv weights only, EMA of the weights (the EMA is what is validated and exported),
+HSV + horizontal flip + random scale/translate augmentation, the L1 box term switched on for
+the last 15 % of the epochs (as YOLOX does for its last no-augmentation epochs).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.models.checkpoint import save_checkpoint
+from bopsurg.models.data import DetectionSet, load_detection_set, split_scenes
+from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
+from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
+from bopsurg.models.detector.ema import ModelEMA
+from bopsurg.models.training import (
+    RunFolder,
+    RunSettings,
+    Timer,
+    batches,
+    epoch_generator,
+    flat_cosine_lr,
+    format_record,
+    param_groups,
+    provenance,
+    resolve_device,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DetectorRecipe:
+    """Training hyper-parameters (recorded in the checkpoint)."""
+
+    epochs: int = 24
+    batch_size: int = 16
+    lr: float = 2e-3
+    weight_decay: float = 5e-4
+    warmup_epochs: float = 1.0
+    l1_fraction: float = 0.15
+    scale: tuple[float, float] = (0.6, 1.4)
+    translate: float = 0.1
+    flip: float = 0.5
+    min_visib: float = 0.1
+    val_every: int = 5
+
+
+@torch.no_grad()
+def validate(model: torch.nn.Module, data: DetectionSet, device: torch.device) -> dict[str, float]:
+    """Top-1 box per GT instance: recall at IoU 0.5 and mean IoU; false positives = images
+    without GT where the best score is >= 0.3."""
+    if len(data) == 0:
+        return {}
+    model.eval()
+    ious, fps, negatives = [], 0, 0
+    for idx in torch.split(torch.arange(len(data)), 32):
+        images = data.images[idx].to(device).float() / 255
+        dets = model.detect(images, conf_thr=0.001)
+        for i, det in zip(idx.tolist(), dets, strict=True):
+            gt = data.targets[i]
+            if len(gt) == 0:
+                negatives += 1
+                fps += int(len(det) > 0 and float(det[0, 4]) >= 0.3)
+                continue
+            for g in gt:
+                same = det[det[:, 5] == g[0]]
+                iou = box_iou(g[None, 1:].to(det), same[:1, :4]) if len(same) else None
+                ious.append(0.0 if iou is None else float(iou.max()))
+    a = np.array(ious)
+    out = {"recall50": float((a >= 0.5).mean()) if len(a) else math.nan}
+    out["recall75"] = float((a >= 0.75).mean()) if len(a) else math.nan
+    out["mean_iou"] = float(a.mean()) if len(a) else math.nan
+    if negatives:
+        out["false_pos_rate"] = fps / negatives
+    return out
+
+
+def train_detector(
+    dataset: str | Path,
+    out: str | Path,
+    *,
+    split: str = "train",
+    val_split: str | None = None,
+    preset: str = "cpu",
+    recipe: DetectorRecipe | None = None,
+    seed: int = 0,
+    device: str = "auto",
+    restart: bool = False,
+    progress: bool = True,
+    max_images: int | None = None,
+) -> Path:
+    """Train (or resume) a detector run in ``out``; returns the exported ``detector.pt``.
+
+    Args:
+        dataset: BOP dataset root.
+        out: Run folder (created; resumed when it holds a run with the same settings).
+        split: Training split.
+        val_split: Validation split; None = hold out every 10th scene of ``split``.
+        preset: :meth:`DetectorConfig.preset` name (``cpu``, ``tiny``, ``s``, ``test``).
+        recipe: Hyper-parameters (default :class:`DetectorRecipe`).
+        seed: Seed of every random choice.
+        device: ``auto``, ``cpu``, ``cuda`` ...
+        restart: Discard a previous run in ``out``.
+        progress: Show progress bars.
+        max_images: Use only the first N training images (smoke tests).
+    """
+    recipe = recipe or DetectorRecipe()
+    dev = resolve_device(device)
+    cfg = DetectorConfig.preset(preset)
+    ds = BopDataset(dataset, split)
+    val_ds = BopDataset(dataset, val_split) if val_split else None
+    train_ids, val_ids = split_scenes(ds, 10, val_ds)
+    classes = tuple(ds.obj_ids)[: cfg.num_classes]
+    if len(classes) < cfg.num_classes:
+        raise ValueError(f"preset {preset!r} has {cfg.num_classes} classes, dataset {classes}")
+    settings = RunSettings(
+        "detector", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
+        {"val_split": val_split, "max_images": max_images},
+    )  # fmt: skip
+    run = RunFolder(out, settings, restart=restart)
+    state = run.load_state()
+
+    torch.manual_seed(seed)
+    train = load_detection_set(
+        ds, train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib, progress=progress
+    )
+    if max_images is not None:
+        train = DetectionSet(
+            train.images[:max_images], train.targets[:max_images], train.keys[:max_images],
+            train.scales[:max_images], train.classes,
+        )  # fmt: skip
+    val = load_detection_set(
+        val_ds or ds, val_ds.scene_ids if val_ds else val_ids, cfg.input_hw, classes,
+        min_visib=recipe.min_visib, progress=progress,
+    )  # fmt: skip
+    log.info("detector: %d train images, %d validation images", len(train), len(val))
+
+    model = YoloxDetector(cfg).to(dev)
+    ema = ModelEMA(model, tau=500.0)
+    opt = torch.optim.AdamW(param_groups(model, recipe.weight_decay), lr=recipe.lr)
+    steps_per_epoch = max(1, len(train) // recipe.batch_size)
+    total = recipe.epochs * steps_per_epoch
+    warmup = int(recipe.warmup_epochs * steps_per_epoch)
+    start = 0
+    timer = Timer()
+    if state is not None:
+        model.load_state_dict(state["model"])
+        ema.load_state_dict(state["ema"])
+        opt.load_state_dict(state["optimizer"])
+        start = int(state["epoch"]) + 1
+        timer = Timer(float(state["seconds"]))
+    l1_from = math.ceil(recipe.epochs * (1 - recipe.l1_fraction))
+
+    export = Path(out) / "detector.pt"
+    for epoch in range(start, recipe.epochs):
+        gen = epoch_generator(seed, epoch)
+        model.train()
+        sums: dict[str, float] = {}
+        bar = tqdm(
+            batches(len(train), recipe.batch_size, gen), total=steps_per_epoch,
+            desc=f"detector {epoch + 1}/{recipe.epochs}", disable=not progress, leave=False,
+        )  # fmt: skip
+        for k, idx in enumerate(bar):
+            step = epoch * steps_per_epoch + k
+            for g in opt.param_groups:
+                g["lr"] = flat_cosine_lr(step, total, warmup, 0.0, recipe.lr)
+            images = train.images[idx].to(dev).float() / 255
+            targets = [train.targets[i].to(dev) for i in idx.tolist()]
+            images = hsv_jitter(images, gen)
+            images, targets = random_flip(images, targets, gen, p=recipe.flip)
+            images, targets = random_affine(
+                images, targets, gen, scale=recipe.scale, translate=recipe.translate
+            )
+            losses = model.loss(model(images), targets, use_l1=epoch >= l1_from)
+            opt.zero_grad(set_to_none=True)
+            losses["total"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            opt.step()
+            ema.update(model)
+            for name, v in losses.items():
+                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
+            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
+        record = {"epoch": epoch, "lr": opt.param_groups[0]["lr"]}
+        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
+        last = epoch == recipe.epochs - 1
+        if last or (epoch + 1) % recipe.val_every == 0:
+            record.update({f"val_{n}": v for n, v in validate(ema.ema, val, dev).items()})
+        record["seconds"] = round(timer.seconds, 1)
+        log.info("detector epoch %d: %s", epoch + 1, format_record(record))
+        save_checkpoint(
+            export, ema.ema.state_dict(), kind="detector", config=cfg.to_dict(),
+            meta={
+                "classes": list(classes), "epoch": epoch + 1,
+                "validation": {k: v for k, v in record.items() if k.startswith("val_")},
+                **provenance(settings, timer.seconds, dev),
+            },
+            half=True,
+        )  # fmt: skip
+        run.save_state(
+            {
+                "model": model.state_dict(), "ema": ema.state_dict(),
+                "optimizer": opt.state_dict(), "epoch": epoch, "seconds": timer.seconds,
+            }
+        )  # fmt: skip
+        run.append_log(record)
+    return export

@@ -1,0 +1,340 @@
+"""Train the GDR-Net-like pose head on the GT instances of a BOP split.
+
+Per batch, from the context crops of :class:`~bopsurg.models.data.PoseSet`: dynamic zoom-in
+(DZI) around the visible box, ROI image (bilinear, ``roi_in``), visible mask and object
+coordinates (nearest, ``roi_out``), normalised coordinates and FPS surface regions computed
+on the fly, colour jitter, SITE and allocentric targets; the GDR-Net losses of
+:func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe (``notes/estimators.md`` 1.8/1.11):
+AdamW, quadratic warm-up, flat then cosine from 72 % of the steps, EMA of the weights.
+Validation decodes poses with test-time crops around the GT visible boxes and reports the
+median RE / TE / MSSD with bopsurg's own metrics.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from bopsurg import metrics
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.geometry import rotation_about_axis
+from bopsurg.models.checkpoint import save_checkpoint
+from bopsurg.models.data import PoseSet, load_pose_set, split_scenes
+from bopsurg.models.detector.augment import hsv_jitter
+from bopsurg.models.detector.ema import ModelEMA
+from bopsurg.models.pose.config import PoseConfig
+from bopsurg.models.pose.decode import pose_from_output
+from bopsurg.models.pose.encodings import (
+    ego_to_allo,
+    rot6d_from_matrix,
+    site_encode,
+)
+from bopsurg.models.pose.losses import gdr_losses
+from bopsurg.models.pose.network import GdrPoseNet
+from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
+from bopsurg.models.pose.targets import XyzNormaliser, farthest_point_sampling, xyz_to_region
+from bopsurg.models.training import (
+    RunFolder,
+    RunSettings,
+    Timer,
+    batches,
+    epoch_generator,
+    flat_cosine_lr,
+    format_record,
+    param_groups,
+    provenance,
+    resolve_device,
+)
+
+log = logging.getLogger(__name__)
+
+#: Model points for the point-matching loss (GDR-Net uses 3000).
+PM_POINTS = 3000
+
+
+@dataclass(frozen=True)
+class PoseRecipe:
+    """Training hyper-parameters (recorded in the checkpoint)."""
+
+    epochs: int = 40
+    batch_size: int = 32
+    lr: float = 1e-3
+    weight_decay: float = 1e-2
+    warmup_epochs: float = 1.0
+    anneal_from: float = 0.72
+    min_visib: float = 0.1
+    hsv: tuple[float, float, float] = (0.015, 0.5, 0.4)
+    val_every: int = 5
+    symmetric: bool = False
+
+
+@dataclass(frozen=True)
+class ObjectGeometry:
+    """What the pose head needs to know about its object (all mm, model frame)."""
+
+    obj_id: int
+    normaliser: XyzNormaliser
+    fps: torch.Tensor  # (R, 3) region centres
+    points: torch.Tensor  # (P, 3) PM-loss points
+    sym_rotations: torch.Tensor | None  # (S, 3, 3)
+    diameter: float
+
+    def to_meta(self) -> dict[str, Any]:
+        """The JSON part the estimator needs at test time."""
+        return {
+            "obj_id": self.obj_id,
+            "xyz_centre": self.normaliser.centre.tolist(),
+            "xyz_scale": float(self.normaliser.scale),
+            "fps": self.fps.tolist(),
+            "diameter": self.diameter,
+            "symmetries": None if self.sym_rotations is None else self.sym_rotations.tolist(),
+        }
+
+
+def needle_symmetry(info: dict[str, Any]) -> torch.Tensor:
+    """The proper 2-fold symmetry of a circular-arc needle (tip and tail swapped): 180 deg
+    about the in-plane axis through the circle centre (model origin) and the arc midpoint,
+    from ``models_info`` keypoints ``tip``/``tail`` and ``plane_normal``."""
+    kp = info.get("keypoints") or {}
+    if "tip" not in kp or "tail" not in kp:
+        raise ValueError("models_info has no tip/tail keypoints to derive the needle symmetry")
+    tip, tail = (np.asarray(kp[k], float) for k in ("tip", "tail"))
+    axis = tip / np.linalg.norm(tip) + tail / np.linalg.norm(tail)
+    return torch.tensor(rotation_about_axis(axis, np.pi)[None], dtype=torch.float32)
+
+
+def object_geometry(
+    dataset: BopDataset, obj_id: int, cfg: PoseConfig, symmetric: bool
+) -> ObjectGeometry:
+    """Normaliser, FPS regions, PM points and symmetries of ``obj_id`` from the dataset."""
+    model = dataset.model(obj_id)
+    info = dataset.models_info.get(obj_id, {})
+    v = torch.from_numpy(model.pts).float()
+    gen = torch.Generator().manual_seed(obj_id)
+    idx = torch.randperm(len(v), generator=gen)[:PM_POINTS]
+    syms = None
+    if symmetric:
+        table = metrics.symmetry_transforms(info, max_sym_disc_step=0.01)
+        R_s = torch.tensor(np.asarray(table[0]), dtype=torch.float32)
+        R_s = R_s[1:] if len(R_s) > 1 else needle_symmetry(info)  # drop the identity
+        syms = R_s
+    return ObjectGeometry(
+        obj_id,
+        XyzNormaliser.from_vertices(v),
+        farthest_point_sampling(v, cfg.num_regions),
+        v[idx],
+        syms,
+        float(info.get("diameter", float(torch.cdist(v, v).max()))),
+    )
+
+
+def roi_batch(
+    data: PoseSet,
+    idx: torch.Tensor,
+    cfg: PoseConfig,
+    geo: ObjectGeometry,
+    device: torch.device,
+    gen: torch.Generator | None,
+    hsv: tuple[float, float, float] = (0.015, 0.5, 0.4),
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+    """Network inputs and loss targets of the instances ``idx``; train-time jitter (DZI and
+    HSV colour, amplitudes ``hsv``) when ``gen`` is given, test-time crops when None."""
+    H, W = (int(v) for v in data.image_hw[idx[0]])
+    box = data.bbox[idx].to(device)
+    box_xywh = torch.cat([box[:, :2] - 0.5, box[:, 2:]], dim=1)  # pixel-centre convention
+    centre, side = dzi_boxes(box_xywh, gen, cfg, (H, W))
+    a, c0 = data.ctx[idx, 0].to(device), data.ctx[idx, 1:].to(device)
+    C = data.rgb.shape[-1]
+    c_centre, c_side = (centre - c0) * a[:, None] + C / 2, side * a  # in the context crop
+    rgb = data.rgb[idx].to(device).float() / 255
+    roi_img = crop(rgb, c_centre, c_side, cfg.roi_in, "bilinear")
+    if gen is not None:
+        roi_img = hsv_jitter(roi_img, gen, *hsv)
+    mask = crop(data.mask[idx, None].to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
+    xyz = crop(data.xyz[idx].to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
+    fg = mask[:, 0] > 0.5
+    xyz_hw = xyz.permute(0, 2, 3, 1)
+    region = xyz_to_region(xyz_hw, fg, geo.fps.to(device))
+    xyz_n = geo.normaliser.normalise(xyz_hw).permute(0, 3, 1, 2) * fg[:, None]
+    K, R, t = data.K[idx].to(device), data.R[idx].to(device), data.t[idx].to(device)
+    wh = box_xywh[:, 2:]
+    coord2d = roi_coord_2d(centre, side, cfg.roi_out, (H, W))
+    target = {
+        "mask_visib": fg[:, None].float(),
+        "xyz": xyz_n,
+        "region": region,
+        "R": R,
+        "t": t,
+        "site": site_encode(t, K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm),
+        "rot6d_allo": rot6d_from_matrix(ego_to_allo(R, t)),
+        "K": K,
+        "centre": centre,
+        "wh": wh,
+        "side": side,
+    }
+    return roi_img, coord2d, target
+
+
+@torch.no_grad()
+def validate(
+    model: torch.nn.Module,
+    data: PoseSet,
+    cfg: PoseConfig,
+    geo: ObjectGeometry,
+    device: torch.device,
+) -> dict[str, float]:
+    """Median RE (deg), TE (mm), MSSD (mm) on test-time crops around the GT visible boxes."""
+    if len(data) == 0:
+        return {}
+    model.eval()
+    R_all, t_all = [], []
+    for idx in torch.split(torch.arange(len(data)), 64):
+        roi_img, coord2d, tg = roi_batch(data, idx, cfg, geo, device, None)
+        out = model(roi_img, coord2d)
+        R, t = pose_from_output(out, tg["K"], tg["centre"], tg["wh"], tg["side"], cfg)
+        R_all.append(R.double().cpu())
+        t_all.append(t.double().cpu())
+    R_e, t_e = torch.cat(R_all).numpy(), torch.cat(t_all).numpy()
+    R_g, t_g = data.R.double().numpy(), data.t.double().numpy()
+    pts = geo.points.double().numpy()
+    syms = None
+    if geo.sym_rotations is not None:
+        S = geo.sym_rotations.double().numpy()
+        syms = (np.concatenate([np.eye(3)[None], S]), np.zeros((len(S) + 1, 3)))
+    return {
+        "re_median": float(np.median(metrics.re(R_e, R_g))),
+        "te_median": float(np.median(metrics.te(t_e, t_g))),
+        "mssd_median": float(np.median(metrics.mssd(R_e, t_e, R_g, t_g, pts, syms))),
+    }
+
+
+def train_pose(
+    dataset: str | Path,
+    out: str | Path,
+    *,
+    split: str = "train",
+    val_split: str | None = None,
+    obj_id: int | None = None,
+    preset: str = "cpu",
+    recipe: PoseRecipe | None = None,
+    seed: int = 0,
+    device: str = "auto",
+    restart: bool = False,
+    progress: bool = True,
+    max_instances: int | None = None,
+) -> Path:
+    """Train (or resume) a pose-head run in ``out``; returns the exported ``pose.pt``.
+
+    Args:
+        dataset: BOP dataset root.
+        out: Run folder (created; resumed when it holds a run with the same settings).
+        split: Training split.
+        val_split: Validation split; None = hold out every 10th scene of ``split``.
+        obj_id: Object to train for; None = the dataset's first object.
+        preset: :meth:`PoseConfig.preset` name (``cpu``, ``paper``, ``test``).
+        recipe: Hyper-parameters (default :class:`PoseRecipe`).
+        seed: Seed of every random choice.
+        device: ``auto``, ``cpu``, ``cuda`` ...
+        restart: Discard a previous run in ``out``.
+        progress: Show progress bars.
+        max_instances: Use only the first N training instances (smoke tests).
+    """
+    recipe = recipe or PoseRecipe()
+    dev = resolve_device(device)
+    cfg = PoseConfig.preset(preset)
+    if recipe.symmetric:
+        cfg = PoseConfig.from_dict({**cfg.to_dict(), "symmetric": True})
+    ds = BopDataset(dataset, split)
+    val_ds = BopDataset(dataset, val_split) if val_split else None
+    obj_id = ds.obj_ids[0] if obj_id is None else obj_id
+    train_ids, val_ids = split_scenes(ds, 10, val_ds)
+    settings = RunSettings(
+        "pose", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
+        {"val_split": val_split, "obj_id": obj_id, "max_instances": max_instances},
+    )  # fmt: skip
+    run = RunFolder(out, settings, restart=restart)
+    state = run.load_state()
+
+    torch.manual_seed(seed)
+    geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
+    train = load_pose_set(ds, train_ids, obj_id, min_visib=recipe.min_visib, progress=progress)
+    if max_instances is not None:
+        train = _head(train, max_instances)
+    val = load_pose_set(
+        val_ds or ds, val_ds.scene_ids if val_ds else val_ids, obj_id, min_visib=0.3,
+        progress=progress,
+    )  # fmt: skip
+    log.info("pose: %d train instances, %d validation instances", len(train), len(val))
+
+    model = GdrPoseNet(cfg).to(dev)
+    ema = ModelEMA(model, tau=500.0)
+    opt = torch.optim.AdamW(param_groups(model, recipe.weight_decay), lr=recipe.lr)
+    steps_per_epoch = max(1, len(train) // recipe.batch_size)
+    total = recipe.epochs * steps_per_epoch
+    warmup = int(recipe.warmup_epochs * steps_per_epoch)
+    start, timer = 0, Timer()
+    if state is not None:
+        model.load_state_dict(state["model"])
+        ema.load_state_dict(state["ema"])
+        opt.load_state_dict(state["optimizer"])
+        start, timer = int(state["epoch"]) + 1, Timer(float(state["seconds"]))
+    points = geo.points.to(dev)
+    syms = None if geo.sym_rotations is None else geo.sym_rotations.to(dev)
+
+    export = Path(out) / "pose.pt"
+    for epoch in range(start, recipe.epochs):
+        gen = epoch_generator(seed, epoch)
+        model.train()
+        sums: dict[str, float] = {}
+        bar = tqdm(
+            batches(len(train), recipe.batch_size, gen), total=steps_per_epoch,
+            desc=f"pose {epoch + 1}/{recipe.epochs}", disable=not progress, leave=False,
+        )  # fmt: skip
+        for k, idx in enumerate(bar):
+            step = epoch * steps_per_epoch + k
+            for g in opt.param_groups:
+                g["lr"] = flat_cosine_lr(step, total, warmup, recipe.anneal_from, recipe.lr)
+            roi_img, coord2d, target = roi_batch(train, idx, cfg, geo, dev, gen, recipe.hsv)
+            losses = gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
+            opt.zero_grad(set_to_none=True)
+            losses["total"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            opt.step()
+            ema.update(model)
+            for name, v in losses.items():
+                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
+            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
+        record: dict[str, Any] = {"epoch": epoch, "lr": opt.param_groups[0]["lr"]}
+        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
+        if epoch == recipe.epochs - 1 or (epoch + 1) % recipe.val_every == 0:
+            record.update({f"val_{n}": v for n, v in validate(ema.ema, val, cfg, geo, dev).items()})
+        record["seconds"] = round(timer.seconds, 1)
+        log.info("pose epoch %d: %s", epoch + 1, format_record(record))
+        save_checkpoint(
+            export, ema.ema.state_dict(), kind="pose", config=cfg.to_dict(),
+            meta={
+                **geo.to_meta(), "epoch": epoch + 1,
+                "validation": {k: v for k, v in record.items() if k.startswith("val_")},
+                **provenance(settings, timer.seconds, dev),
+            },
+            half=True,
+        )  # fmt: skip
+        run.save_state(
+            {
+                "model": model.state_dict(), "ema": ema.state_dict(),
+                "optimizer": opt.state_dict(), "epoch": epoch, "seconds": timer.seconds,
+            }
+        )  # fmt: skip
+        run.append_log(record)
+    return export
+
+
+def _head(data: PoseSet, n: int) -> PoseSet:
+    fields = ("rgb", "mask", "xyz", "ctx", "K", "R", "t", "bbox", "image_hw")
+    return PoseSet(**{f: getattr(data, f)[:n] for f in fields}, records=data.records[:n])

@@ -1,0 +1,180 @@
+"""record → generate → train detector and pose head → predict → eval, with tiny presets.
+
+Also: checkpoints resume to the same weights, bad checkpoints are one-line errors, external
+boxes and the PnP decoding path, and the shipped model.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.detections import save_detections
+from bopsurg.bop.results import load_results
+from bopsurg.cli.main import main
+from bopsurg.estimation import Detections, load_estimator
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("pybullet")
+
+from bopsurg.models.checkpoint import load_tensors  # noqa: E402
+from bopsurg.models.estimator import SHIPPED  # noqa: E402
+
+SMALL = ["--width", "320", "--height", "240", "--K", "180,180,160,120", "--no-progress"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    # Tiny models on a shared 2-core machine: one thread is faster and deterministic.
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("models")
+    for name, seed in (("train", 4), ("test", 5)):
+        bag = root / f"{name}.bag"
+        assert main(["record", "--out", str(bag), "--seed", str(seed), "--duration", "3"]) == 0
+        replays = "3" if name == "train" else "1"
+        args = ["generate", str(bag), "--out", str(root / "ds"), "--split", name]
+        assert main([*args, "--replays", replays, "--period", "0.5", *SMALL]) == 0
+    return root / "ds"
+
+
+def _train(model, dataset, out, epochs, *extra):
+    args = ["train", model, str(dataset), "--out", str(out), "--preset", "test"]
+    return main([*args, "--epochs", str(epochs), "--batch-size", "4", "--no-progress", *extra])
+
+
+@pytest.fixture(scope="module")
+def trained(dataset, tmp_path_factory):
+    runs = tmp_path_factory.mktemp("runs")
+    assert _train("detector", dataset, runs / "det", 2) == 0
+    assert _train("pose", dataset, runs / "pose", 2) == 0
+    return runs / "det" / "detector.pt", runs / "pose" / "pose.pt"
+
+
+def test_training_writes_checkpoints_logs_and_provenance(trained):
+    det, pose = trained
+    for path, kind in ((det, "detector"), (pose, "pose")):
+        info = json.loads(path.with_suffix(".json").read_text())
+        assert info["kind"] == kind
+        assert info["meta"]["settings"]["seed"] == 0
+        assert info["meta"]["epoch"] == 2
+        state = load_tensors(path)
+        assert all(v.dtype != torch.float32 for v in state.values())  # shipped as float16
+        log = [json.loads(x) for x in (path.parent / "log.jsonl").read_text().splitlines()]
+        assert [r["epoch"] for r in log] == [0, 1]
+        assert np.isfinite(log[-1]["loss_total"])
+        assert any(k.startswith("val_") for k in log[-1])
+    pose_meta = json.loads(pose.with_suffix(".json").read_text())["meta"]
+    assert len(pose_meta["fps"]) == 8
+    assert pose_meta["obj_id"] == 1
+
+
+def test_a_resumed_run_ends_with_the_same_weights(dataset, trained, tmp_path):
+    _, pose = trained
+    out = tmp_path / "pose"
+    assert _train("pose", dataset, out, 1) == 0
+    assert _train("pose", dataset, out, 2) == 0  # resumes after epoch 1
+    a, b = load_tensors(pose), load_tensors(out / "pose.pt")
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+
+
+def test_resume_with_other_settings_is_refused(dataset, trained, capsys):
+    det, _ = trained
+    code = _train("detector", dataset, det.parent, 3, "--lr", "0.5")
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert "other settings (recipe.lr)" in err
+    assert "\n" not in err
+
+
+def test_predict_then_eval(dataset, trained, tmp_path, capsys):
+    det, pose = trained
+    out = tmp_path / "res.csv"
+    args = ["predict", str(dataset), "--out", str(out), "--detector", str(det), "--pose", str(pose)]
+    assert main([*args, "--option", "conf=0", "--device", "cpu", "--no-progress"]) == 0
+    est = load_results(out)
+    assert len(est) > 0
+    assert (est.time > 0).all()
+    assert "ms per image" in capsys.readouterr().out
+    ev = tmp_path / "eval"
+    assert main(["eval", str(dataset), str(out), "--out", str(ev), "--metrics", "re,te,mssd"]) == 0
+    summary = json.loads((ev / "summary.json").read_text())
+    assert summary  # scored; accuracy after 2 tiny epochs is meaningless
+
+
+def test_external_boxes_and_pnp_decoding(dataset, trained, tmp_path):
+    det, pose = trained
+    ds = BopDataset(dataset, "test")
+    boxes = {}
+    for s in ds.scene_ids:
+        for im_id, infos in ds.scene(s).gt_info.items():
+            b = infos[0].bbox_visib
+            if b[2] > 0:
+                boxes[(s, im_id)] = Detections([1], [1.0], [[b[0], b[1], b[2] + 1, b[3] + 1]])
+    path = tmp_path / "gt_boxes.json"
+    save_detections(path, boxes)
+    out = tmp_path / "res.csv"
+    args = ["predict", str(dataset), "--out", str(out), "--pose", str(pose), "--boxes", str(path)]
+    assert main([*args, "--option", "decode=pnp", "--detector", str(det), "--no-progress"]) == 0
+    est = load_results(out)
+    assert set(zip(est.scene_id.tolist(), est.im_id.tolist(), strict=False)) <= set(boxes)
+    assert len(est) > 0
+
+
+@pytest.mark.parametrize("damage", ["truncate", "kind", "no_json", "other_config"])
+def test_bad_checkpoints_are_one_line_errors(dataset, trained, tmp_path, capsys, damage):
+    det, pose = trained
+    bad = tmp_path / "pose.pt"
+    shutil.copy(pose, bad)
+    shutil.copy(pose.with_suffix(".json"), bad.with_suffix(".json"))
+    info = json.loads(bad.with_suffix(".json").read_text())
+    if damage == "truncate":
+        bad.write_bytes(bad.read_bytes()[:1000])
+    elif damage == "kind":
+        info["kind"] = "detector"
+        bad.with_suffix(".json").write_text(json.dumps(info))
+    elif damage == "no_json":
+        bad.with_suffix(".json").unlink()
+    else:
+        info["config"]["head_channels"] = 32
+        bad.with_suffix(".json").write_text(json.dumps(info))
+    args = ["predict", str(dataset), "--out", str(tmp_path / "r.csv"), "--pose", str(bad)]
+    assert main([*args, "--detector", str(det), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bopsurg: error:")
+    assert "\n" not in err
+    assert "pose" in err
+
+
+@pytest.mark.skipif(not (SHIPPED / "pose.pt").exists(), reason="no shipped model yet")
+def test_the_shipped_model_is_small_and_loads():
+    size = sum(p.stat().st_size for p in SHIPPED.glob("*.pt"))
+    assert size <= 20 * 2**20
+    est = load_estimator("gdrnet", {"device": "cpu"})
+    assert est.obj_ids == (1,)
+    rgb = np.full((480, 640, 3), 90, np.uint8)
+    K = np.array([[415.0, 0, 320], [0, 415.0, 240], [0, 0, 1]])
+    pred = est.predict(rgb, K)
+    assert len(pred) <= 1
+    assert (SHIPPED / "MODEL_CARD.md").is_file()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_predict_on_cuda(dataset, trained, tmp_path):
+    det, pose = trained
+    out = tmp_path / "res.csv"
+    args = ["predict", str(dataset), "--out", str(out), "--detector", str(det), "--pose", str(pose)]
+    assert main([*args, "--device", "cuda", "--option", "conf=0", "--no-progress"]) == 0
+    assert len(load_results(out)) > 0
