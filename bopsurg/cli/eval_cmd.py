@@ -10,7 +10,13 @@ from pathlib import Path
 from bopsurg._version import __version__
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.targets import load_targets
-from bopsurg.cli.inputs import add_dataset_and_results, add_executor_args, load_dataset_and_results
+from bopsurg.cli.inputs import (
+    add_dataset_and_results,
+    add_detections_arg,
+    add_executor_args,
+    load_dataset_and_results,
+    load_detections_arg,
+)
 from bopsurg.errors import BopsurgError
 from bopsurg.evaluation.runner import (
     INSTANCE_METRICS,
@@ -86,6 +92,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="also write a rerun recording for visual error analysis (needs bopsurg[rerun])",
     )
+    add_detections_arg(p)
     add_executor_args(p, unit="scene")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.set_defaults(func=run)
@@ -128,6 +135,7 @@ def run(args: argparse.Namespace) -> int:
     if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
         executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
     dataset, est = load_dataset_and_results(args)
+    boxes = load_detections_arg(args)  # early: a bad file fails before the evaluation
     targets = load_targets(args.targets) if args.targets else None
     renderer = _renderer(args.renderer, dataset)
     options = {
@@ -171,6 +179,6 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun:
         from bopsurg.viz import log_evaluation
 
-        rrd = log_evaluation(dataset, est, result, args.rerun)
+        rrd = log_evaluation(dataset, est, result, args.rerun, detections=boxes)
         print(f"wrote {rrd}; open it with: rerun {rrd}")
     return 0

@@ -43,3 +43,23 @@ def add_executor_args(p: argparse.ArgumentParser, *, unit: str) -> None:
         metavar="HOST:PORT",
         help="Ray cluster to join (default: start a local Ray instance)",
     )
+
+
+def add_detections_arg(p: argparse.ArgumentParser) -> None:
+    """``--detections FILE.json``: 2D boxes to draw in the rerun recording."""
+    p.add_argument(
+        "--detections",
+        default=None,
+        metavar="FILE.json",
+        help="BOP detections JSON (e.g. from 'bopsurg predict --detections-out') whose boxes "
+        "are drawn in the rerun recording",
+    )
+
+
+def load_detections_arg(args: argparse.Namespace):  # -> dict[(scene, im), Detections] | None
+    """The boxes of ``--detections``, or None."""
+    if not getattr(args, "detections", None):
+        return None
+    from bopsurg.bop.detections import load_detections
+
+    return load_detections(args.detections)[0]

@@ -6,7 +6,12 @@ import argparse
 import logging
 import time
 
-from bopsurg.cli.inputs import add_dataset_and_results, load_dataset_and_results
+from bopsurg.cli.inputs import (
+    add_dataset_and_results,
+    add_detections_arg,
+    load_dataset_and_results,
+    load_detections_arg,
+)
 from bopsurg.evaluation.runner import evaluate
 
 log = logging.getLogger(__name__)
@@ -48,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "else the 100 worst + 100 spread)",
     )
     p.add_argument("--worst", type=int, default=20, help="length of the worst-frames list")
+    add_detections_arg(p)
     p.set_defaults(func=run)
 
 
@@ -57,10 +63,12 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     dataset, est = load_dataset_and_results(args)
+    boxes = load_detections_arg(args)
     result = evaluate(dataset, est, min_visib=args.min_visib)
     rrd = log_evaluation(
-        dataset, est, result, args.out, max_frames=args.max_frames, worst=args.worst
-    )
+        dataset, est, result, args.out, max_frames=args.max_frames, worst=args.worst,
+        detections=boxes,
+    )  # fmt: skip
     print(f"wrote {rrd} ({len(est)} estimates, {time.perf_counter() - t0:.1f} s)")
     print(f"open it with: rerun {rrd}")
     return 0

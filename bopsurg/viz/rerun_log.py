@@ -15,7 +15,11 @@ that has GT or estimates, in ``(scene_id, im_id)`` order):
 - ``metrics/{re,te,mssd,mspd}`` and ``metrics/visib_fract``: per-frame errors (deg, mm, mm,
   px, fraction); ``metrics/worst_rank``: 1..N on the N frames with the largest MSSD.
 - ``frame_info/{scene_id,im_id}``: the ids of each frame.
-- ``histograms/{re,te,mssd}`` (:class:`rerun.BarChart`) and ``histograms/medians`` (text).
+- ``world/camera/boxes``: the 2D boxes the estimates came from (``--detections``), labelled
+  with object id and score.
+- ``histograms/{re,te,mssd}`` (:class:`rerun.BarChart`, interactive),
+  ``histograms/{re,te,mssd}_plot`` (the paper's Fig. 4: the histogram drawn as an image with
+  the median marked by a red line) and ``histograms/medians`` (text).
 - ``report/summary`` (the paper's table, markdown) and ``report/worst`` (the worst frames).
 
 The per-frame value of a metric is the largest over the frame's matched estimates (the one an
@@ -31,6 +35,7 @@ by :func:`select_image_frames`: all frames up to :data:`DEFAULT_IMAGE_FRAMES`, e
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -42,6 +47,7 @@ from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.bop.results import PoseEstimates
 from bopsurg.errors import BopsurgError
+from bopsurg.estimation import Detections
 from bopsurg.evaluation.summary import format_table
 from bopsurg.silhouette import is_closed, project_silhouette
 
@@ -60,6 +66,8 @@ FRAME_METRICS = ("re", "te", "mssd", "mspd")
 #: Silhouette colours (RGB): GT blue, estimate green, as in the paper's Fig. 3.
 GT_COLOR = (40, 90, 255)
 EST_COLOR = (0, 220, 0)
+#: Detector boxes (RGB).
+BOX_COLOR = (255, 200, 0)
 JPEG_QUALITY = 85
 HIST_BINS = 30
 
@@ -137,9 +145,16 @@ def _blueprint(rrb: Any) -> Any:
             rrb.Vertical(
                 rrb.TimeSeriesView(name="errors", origin="metrics"),
                 rrb.Tabs(
-                    rrb.BarChartView(name="RE", origin="histograms/re"),
-                    rrb.BarChartView(name="TE", origin="histograms/te"),
-                    rrb.BarChartView(name="MSSD", origin="histograms/mssd"),
+                    *(
+                        rrb.Spatial2DView(
+                            name=f"{n.upper()} histogram", origin=f"histograms/{n}_plot"
+                        )
+                        for n in ("re", "te", "mssd")
+                    ),
+                    *(
+                        rrb.BarChartView(name=f"{n.upper()} bars", origin=f"histograms/{n}")
+                        for n in ("re", "te", "mssd")
+                    ),
                 ),
                 rrb.Tabs(
                     rrb.TextDocumentView(name="worst frames", origin="report/worst"),
@@ -161,6 +176,7 @@ def log_evaluation(
     *,
     max_frames: int | None = None,
     worst: int = 20,
+    detections: Mapping[tuple[int, int], Detections] | None = None,
 ) -> Path:
     """Write an evaluation as a rerun recording, headless (no viewer is started).
 
@@ -172,6 +188,8 @@ def log_evaluation(
         max_frames: At most this many frames get images, silhouettes and meshes (see
             :func:`select_image_frames`); scalars go for all frames.
         worst: Length of the "worst frames" list (largest per-frame MSSD, mm).
+        detections: 2D boxes per ``(scene_id, im_id)`` (e.g. ``bopsurg predict
+            --detections-out``), drawn on the images.
 
     Returns:
         The written path. Open it with ``rerun FILE.rrd``.
@@ -192,7 +210,7 @@ def log_evaluation(
         _log_static(rr, rec, frames, evaluation, worst)
         _log_scalars(rr, rec, frames, worst)
         chosen = select_image_frames(frames["mssd"].to_numpy(float), max_frames)
-        _log_images(rr, rec, dataset, estimates, frames.iloc[chosen])
+        _log_images(rr, rec, dataset, estimates, frames.iloc[chosen], detections or {})
         log.info("rerun: %d frames, %d with images -> %s", n, len(chosen), path)
     finally:
         rec.flush()
@@ -203,6 +221,58 @@ def log_evaluation(
 def _worst_frames(frames: pd.DataFrame, worst: int) -> pd.DataFrame:
     ranked = frames[np.isfinite(frames["mssd"].to_numpy(float))]
     return ranked.sort_values("mssd", ascending=False, kind="stable").head(max(0, worst))
+
+
+def histogram_figure(
+    counts: np.ndarray,
+    edges: np.ndarray,
+    median: float,
+    label: str,
+    size: tuple[int, int] = (360, 560),
+) -> np.ndarray:
+    """The paper's Fig. 4 panel as an RGB image: bars, x ticks, the median as a red line.
+
+    Args:
+        counts: (B,) bin counts.
+        edges: (B + 1,) bin edges (the metric's unit).
+        median: Where to draw the median line.
+        label: x-axis label, e.g. ``"RE [deg]"``.
+        size: (height, width) px.
+
+    Returns:
+        (H, W, 3) uint8 image, white background.
+    """
+    h, w = size
+    img = np.full((h, w, 3), 255, np.uint8)
+    left, right, top, bottom = 40, 12, 28, 46
+    x0, x1, y0, y1 = left, w - right, top, h - bottom
+    lo, hi = float(edges[0]), float(edges[-1])
+    span = hi - lo if hi > lo else 1.0
+
+    def x_of(v: float) -> int:
+        return round(x0 + (v - lo) / span * (x1 - x0))
+
+    peak = max(int(counts.max()), 1)
+    for c, a, b in zip(counts, edges[:-1], edges[1:], strict=True):
+        top_px = round(y1 - float(c) / peak * (y1 - y0))
+        cv2.rectangle(img, (x_of(a), top_px), (max(x_of(a), x_of(b) - 1), y1), (90, 120, 200), -1)
+    cv2.line(img, (x0, y1), (x1, y1), (0, 0, 0), 1)
+    cv2.line(img, (x0, y0), (x0, y1), (0, 0, 0), 1)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for v in np.linspace(lo, hi, 5):
+        cv2.line(img, (x_of(v), y1), (x_of(v), y1 + 4), (0, 0, 0), 1)
+        cv2.putText(img, f"{v:.3g}", (x_of(v) - 14, y1 + 17), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, str(peak), (4, y0 + 5), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(
+        img, label, (x0 + (x1 - x0) // 2 - 30, h - 8), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA
+    )
+    xm = x_of(median)
+    cv2.line(img, (xm, y0), (xm, y1), (220, 0, 0), 2)
+    cv2.putText(
+        img, f"median {median:.2f}", (min(xm + 4, w - 110), y0 - 8), font, 0.45, (220, 0, 0), 1,
+        cv2.LINE_AA,
+    )  # fmt: skip
+    return img
 
 
 def _log_static(rr: Any, rec: Any, frames: pd.DataFrame, ev: Evaluation, worst: int) -> None:
@@ -231,6 +301,11 @@ def _log_static(rr: Any, rec: Any, frames: pd.DataFrame, ev: Evaluation, worst: 
                 abscissa=(edges[:-1] + edges[1:]) / 2,
                 widths=np.diff(edges).astype(np.float32),
             ),
+            static=True,
+        )
+        rec.log(
+            f"histograms/{name}_plot",
+            rr.Image(histogram_figure(counts, edges, median, f"{name.upper()} [{unit}]")),
             static=True,
         )
         lines.append(
@@ -305,7 +380,12 @@ def _log_scalars(rr: Any, rec: Any, frames: pd.DataFrame, worst: int) -> None:
 
 
 def _log_images(
-    rr: Any, rec: Any, dataset: BopDataset, est: PoseEstimates, frames: pd.DataFrame
+    rr: Any,
+    rec: Any,
+    dataset: BopDataset,
+    est: PoseEstimates,
+    frames: pd.DataFrame,
+    detections: Mapping[tuple[int, int], Detections],
 ) -> None:
     obj_ids = sorted({int(o) for o in est.obj_id} | set(dataset.obj_ids))
     est_key = pd.DataFrame({"scene_id": est.scene_id, "im_id": est.im_id})
@@ -391,6 +471,19 @@ def _log_images(
             "world/camera/est_silhouette",
             rr.SegmentationImage(est_mask, opacity=0.45, draw_order=2.0),
         )
+        if detections:
+            det = detections.get((s, im), Detections.empty())
+            labels = [f"obj {o} {sc:.2f}" for o, sc in zip(det.obj_id, det.score, strict=True)]
+            rec.log(
+                "world/camera/boxes",
+                rr.Boxes2D(
+                    array=det.bbox,
+                    array_format=rr.Box2DFormat.XYWH,
+                    labels=labels,
+                    colors=[BOX_COLOR] * len(det),
+                    draw_order=3.0,
+                ),
+            )
         for kind, poses in (("gt", gt_poses), ("est", est_poses)):
             for o, p in poses.items():
                 model(o)

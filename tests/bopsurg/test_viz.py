@@ -15,6 +15,7 @@ from rerun.chunk import RrdReader
 from bopsurg.bop import BopDataset, load_results
 from bopsurg.cli.main import main
 from bopsurg.errors import BopsurgError
+from bopsurg.estimation import Detections
 from bopsurg.evaluation.runner import evaluate
 from bopsurg.example import ExampleSpec, write_example_dataset
 from bopsurg.viz import frame_table, log_evaluation, select_image_frames
@@ -38,6 +39,10 @@ EXPECTED = {
     "/histograms/te",
     "/histograms/mssd",
     "/histograms/medians",
+    "/histograms/re_plot",
+    "/histograms/te_plot",
+    "/histograms/mssd_plot",
+    "/world/camera/boxes",
     "/report/summary",
     "/report/worst",
 }
@@ -55,7 +60,10 @@ def logged(example, tmp_path_factory):
     dataset = BopDataset(example.root, example.split)
     est = load_results(example.results)
     ev = evaluate(dataset, est)
-    path = log_evaluation(dataset, est, ev, tmp_path_factory.mktemp("rrd") / "eval.rrd", worst=3)
+    boxes = {(1, 0): Detections([1], [0.75], [[10.0, 20.0, 30.0, 40.0]])}
+    path = log_evaluation(
+        dataset, est, ev, tmp_path_factory.mktemp("rrd") / "eval.rrd", worst=3, detections=boxes
+    )
     store = RrdReader(str(path)).stream().collect()
     chunks: dict[str, list] = {}
     for chunk in store.stream():
@@ -79,6 +87,38 @@ def test_entities(logged):
     assert path.is_file()
     assert path.stat().st_size > 0
     assert set(chunks) >= EXPECTED
+
+
+def test_detector_boxes_are_drawn_on_their_frame(logged):
+    ev, _, chunks = logged
+    frames = frame_table(ev.errors, ev.gt_rows)
+    frame = int(frames[(frames["scene_id"] == 1) & (frames["im_id"] == 0)]["frame"].iloc[0])
+    rows = {}
+    for chunk in chunks["/world/camera/boxes"]:
+        rb = chunk.to_record_batch().to_pylist()
+        for r in rb:
+            rows[r["frame"]] = r
+    assert rows[frame]["Boxes2D:centers"] == [[25.0, 40.0]]
+    assert rows[frame]["Boxes2D:half_sizes"] == [[15.0, 20.0]]
+    assert rows[frame]["Boxes2D:labels"] == ["obj 1 0.75"]
+    others = [r for f, r in rows.items() if f != frame]
+    assert others
+    assert all(not r["Boxes2D:centers"] for r in others)  # cleared on frames without boxes
+
+
+def test_histogram_plot_marks_the_median():
+    from bopsurg.viz.rerun_log import histogram_figure
+
+    values = np.random.default_rng(0).gamma(2.0, 4.0, 500)
+    counts, edges = np.histogram(values, bins=30)
+    median = float(np.median(values))
+    img = histogram_figure(counts, edges, median, "RE [deg]")
+    red = (img[:, :, 0] > 200) & (img[:, :, 1] < 40) & (img[:, :, 2] < 40)
+    cols = np.flatnonzero(red.sum(axis=0) > 100)  # the vertical line, not the label
+    x0, x1 = 40, img.shape[1] - 12
+    expected = x0 + (median - edges[0]) / (edges[-1] - edges[0]) * (x1 - x0)
+    assert len(cols) > 0
+    assert abs(cols.mean() - expected) <= 1.5
 
 
 def test_mssd_scalars_equal_errors_csv(logged):
