@@ -103,6 +103,13 @@ def _read_partial(path: Path) -> tuple[list[str], dict[ImageKey, float]]:
     return keep, done
 
 
+def _no_estimates() -> PoseEstimates:
+    empty = np.zeros(0, np.int64)
+    return PoseEstimates.from_arrays(
+        empty, empty, empty, np.zeros(0), np.zeros((0, 3, 3)), np.zeros((0, 3))
+    )
+
+
 def _partial_to_outputs(
     lines: list[str], path: Path
 ) -> tuple[PoseEstimates, dict[ImageKey, Detections]]:
@@ -115,7 +122,7 @@ def _partial_to_outputs(
     tmp = path.with_name(path.name + ".csv")
     tmp.write_text("\n".join([HEADER, *rows]), encoding="utf-8")
     try:
-        est = load_results(tmp) if rows else PoseEstimates.from_arrays([], [], [], [], [], [])
+        est = load_results(tmp) if rows else _no_estimates()
     finally:
         tmp.unlink()
     dets: dict[ImageKey, Detections] = {}

@@ -121,5 +121,7 @@ def run(args: argparse.Namespace) -> int:
         f"{len(done.estimates)} estimates in {done.images} images, "
         f"{1000 * done.mean_time:.1f} ms per image -> {args.out}"
     )
+    if len(done.estimates) == 0:
+        log.warning("the estimator found nothing in %d images", done.images)
     print(f"next: bopsurg eval {args.dataset} {args.out} --split {args.split} --out EVAL_DIR")
     return 0

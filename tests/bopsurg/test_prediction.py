@@ -130,6 +130,24 @@ def test_predict_dataset_writes_timed_results_and_resumes_after_a_kill(example, 
     assert sum(len(d) for d in dets.values()) == len(est)
 
 
+class BlindEstimator:
+    obj_ids = (1,)
+
+    def predict(self, rgb, K, *, obj_ids=None, boxes=None):
+        return PosePredictions.empty()
+
+
+def test_an_estimator_that_finds_nothing_gives_a_header_only_csv(example, tmp_path):
+    ds = BopDataset(example.root, "test")
+    out = tmp_path / "none.csv"
+    run = predict_dataset(ds, BlindEstimator(), out, progress=False)
+    assert len(run.estimates) == 0
+    assert run.images == len(image_targets(ds, (1,)))
+    assert out.read_text().strip() == "scene_id,im_id,obj_id,score,R,t,time"
+    # eval refuses a header-only file with a one-line reason rather than scoring it 0
+    assert main(["eval", str(example.root), str(out), "--out", str(tmp_path / "e")]) == 2
+
+
 def test_predict_cli_with_a_plugin_estimator_and_external_boxes(
     example, tmp_path, capsys, monkeypatch
 ):
