@@ -67,7 +67,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lr", type=float, default=None, help="peak learning rate (2e-3 / 1e-3)")
     p.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 ... (default: auto)")
-    p.add_argument("--obj-id", type=int, default=None, help="pose: object (default: first)")
+    p.add_argument(
+        "--obj-ids",
+        default=None,
+        metavar="ID[,ID...]",
+        help="detector: objects to detect, one class each; pose: the one object of the head "
+        "(default: the dataset's first object, e.g. the needle)",
+    )
     p.add_argument(
         "--symmetric",
         action="store_true",
@@ -93,6 +99,9 @@ def run(args: argparse.Namespace) -> int:
         for k, v in (("epochs", args.epochs), ("batch_size", args.batch_size), ("lr", args.lr))
         if v is not None
     }
+    obj_ids = _ids(args.obj_ids)
+    if args.model == "pose" and obj_ids and len(obj_ids) > 1:
+        raise BopsurgError("--obj-ids: a pose head is trained for one object; run one per object")
     t0 = time.perf_counter()
     if args.model == "detector":
         from bopsurg.models.detector import DetectorConfig
@@ -103,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
             args.dataset, args.out, split=args.split, val_split=args.val_split,
             preset=args.preset, recipe=replace(DetectorRecipe(), **overrides),
             seed=args.seed, device=args.device, restart=args.restart,
-            progress=not args.no_progress,
+            progress=not args.no_progress, obj_ids=obj_ids,
         )  # fmt: skip
     else:
         from bopsurg.models.pose.config import PoseConfig
@@ -113,8 +122,9 @@ def run(args: argparse.Namespace) -> int:
         recipe = replace(PoseRecipe(symmetric=args.symmetric), **overrides)
         path = train_pose(
             args.dataset, args.out, split=args.split, val_split=args.val_split,
-            obj_id=args.obj_id, preset=args.preset, recipe=recipe, seed=args.seed,
-            device=args.device, restart=args.restart, progress=not args.no_progress,
+            obj_id=obj_ids[0] if obj_ids else None, preset=args.preset, recipe=recipe,
+            seed=args.seed, device=args.device, restart=args.restart,
+            progress=not args.no_progress,
         )  # fmt: skip
     print(f"trained {args.model} in {time.perf_counter() - t0:.0f} s -> {path}")
     return 0
@@ -125,3 +135,12 @@ def _check_preset(preset, name: str) -> None:
         preset(name)
     except (ValueError, KeyError) as err:
         raise BopsurgError(f"--preset: {err}") from err
+
+
+def _ids(text: str | None) -> list[int] | None:
+    if not text:
+        return None
+    try:
+        return [int(v) for v in text.split(",")]
+    except ValueError as err:
+        raise BopsurgError(f"--obj-ids: expected integers like 1,2, got {text!r}") from err

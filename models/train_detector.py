@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import torch
 from tqdm import tqdm
 
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.errors import BopsurgError
 from bopsurg.models.checkpoint import save_checkpoint
 from bopsurg.models.data import DetectionSet, load_detection_set, split_scenes
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
@@ -100,6 +102,7 @@ def train_detector(
     restart: bool = False,
     progress: bool = True,
     max_images: int | None = None,
+    obj_ids: Sequence[int] | None = None,
 ) -> Path:
     """Train (or resume) a detector run in ``out``; returns the exported ``detector.pt``.
 
@@ -115,19 +118,21 @@ def train_detector(
         restart: Discard a previous run in ``out``.
         progress: Show progress bars.
         max_images: Use only the first N training images (smoke tests).
+        obj_ids: Objects to detect, one class each; None = the dataset's first object.
     """
     recipe = recipe or DetectorRecipe()
     dev = resolve_device(device)
-    cfg = DetectorConfig.preset(preset)
     ds = BopDataset(dataset, split)
     val_ds = BopDataset(dataset, val_split) if val_split else None
     train_ids, val_ids = split_scenes(ds, 10, val_ds)
-    classes = tuple(ds.obj_ids)[: cfg.num_classes]
-    if len(classes) < cfg.num_classes:
-        raise ValueError(f"preset {preset!r} has {cfg.num_classes} classes, dataset {classes}")
+    classes = tuple(obj_ids) if obj_ids else tuple(ds.obj_ids[:1])
+    unknown = sorted(set(classes) - set(ds.obj_ids))
+    if unknown:
+        raise BopsurgError(f"--obj-ids: {unknown} not among the dataset's objects {ds.obj_ids}")
+    cfg = DetectorConfig.preset(preset, num_classes=len(classes))
     settings = RunSettings(
         "detector", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
-        {"val_split": val_split, "max_images": max_images},
+        {"val_split": val_split, "max_images": max_images, "classes": list(classes)},
     )  # fmt: skip
     run = RunFolder(out, settings, restart=restart)
     state = run.load_state()

@@ -44,7 +44,8 @@ def dataset(tmp_path_factory):
         assert main(["record", "--out", str(bag), "--seed", str(seed), "--duration", "3"]) == 0
         replays = "3" if name == "train" else "1"
         args = ["generate", str(bag), "--out", str(root / "ds"), "--split", name]
-        assert main([*args, "--replays", replays, "--period", "0.5", *SMALL]) == 0
+        opts = ["--replays", replays, "--period", "0.5", "--annotate-instruments", *SMALL]
+        assert main([*args, *opts]) == 0
     return root / "ds"
 
 
@@ -77,6 +78,19 @@ def test_training_writes_checkpoints_logs_and_provenance(trained):
     pose_meta = json.loads(pose.with_suffix(".json").read_text())["meta"]
     assert len(pose_meta["fps"]) == 8
     assert pose_meta["obj_id"] == 1
+
+
+def test_a_detector_for_several_objects(dataset, tmp_path, capsys):
+    assert BopDataset(dataset, "train").obj_ids[:2] == [1, 2]  # needle + instrument parts
+    assert _train("detector", dataset, tmp_path / "det", 1, "--obj-ids", "1,2") == 0
+    info = json.loads((tmp_path / "det" / "detector.json").read_text())
+    assert info["meta"]["classes"] == [1, 2]
+    assert info["config"]["num_classes"] == 2
+    capsys.readouterr()
+    assert _train("detector", dataset, tmp_path / "bad", 1, "--obj-ids", "1,99") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bopsurg: error: --obj-ids: [99] not among")
+    assert "\n" not in err
 
 
 def test_a_resumed_run_ends_with_the_same_weights(dataset, trained, tmp_path):
@@ -169,6 +183,21 @@ def test_the_shipped_model_is_small_and_loads():
     pred = est.predict(rgb, K)
     assert len(pred) <= 1
     assert (SHIPPED / "MODEL_CARD.md").is_file()
+
+
+@pytest.mark.skipif(not (SHIPPED / "pose.pt").exists(), reason="no shipped model yet")
+def test_the_demo_runs_the_main_job_end_to_end(tmp_path, capsys):
+    args = ["demo", "--out", str(tmp_path), "--duration", "4", "--replays", "1", "--device", "cpu"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    for step in ("[1/4] record", "[2/4] generate", "[3/4] predict", "[4/4] evaluate"):
+        assert step in out
+    assert "RE [deg]" in out
+    assert "bop19_average_recall_mssd" in out
+    rrd = tmp_path / "eval" / "demo.rrd"
+    assert f"rerun {rrd}" in out
+    assert len(load_results(tmp_path / "results.csv")) > 0
+    assert (tmp_path / "detections.json").is_file()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
