@@ -96,8 +96,10 @@ def test_check_ok_and_problems(example, capsys):
         gt.write_text(original)
 
 
-def test_demo_runs(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path), "--scenes", "1", "--images", "4"]) == 0
+def test_example_demo_runs(tmp_path, capsys):
+    assert (
+        main(["demo", "--example", "--out", str(tmp_path), "--scenes", "1", "--images", "4"]) == 0
+    )
     out = capsys.readouterr().out
     assert "[3/3] bopsurg eval" in out
     assert "RE [deg]" in out
