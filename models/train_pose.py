@@ -2,10 +2,11 @@
 
 Per batch, from the context crops of :class:`~bopsurg.models.data.PoseSet`: dynamic zoom-in
 (DZI) around the visible box, ROI image (bilinear, ``roi_in``), visible mask and object
-coordinates (nearest, ``roi_out``), normalised coordinates and FPS surface regions computed
-on the fly, colour jitter, SITE and allocentric targets; the GDR-Net losses of
-:func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe (``notes/estimators.md`` 1.8/1.11):
-AdamW, quadratic warm-up, flat then cosine from 72 % of the steps, EMA of the weights.
+coordinates (nearest, ``roi_out``), the soft mask (covered fraction per cell), normalised
+coordinates and FPS surface regions computed on the fly, colour jitter, SITE and allocentric
+targets; the GDR-Net losses of :func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe
+(``notes/estimators.md`` 1.8/1.11): AdamW, quadratic warm-up, flat then cosine from 72 % of
+the steps, EMA of the weights.
 Validation decodes poses with test-time crops around the GT visible boxes and reports the
 median RE / TE / MSSD with bopsurg's own metrics.
 """
@@ -156,7 +157,11 @@ def roi_batch(
     roi_img = crop(rgb, c_centre, c_side, cfg.roi_in, "bilinear")
     if gen is not None:
         roi_img = hsv_jitter(roi_img, gen, *hsv)
-    mask = crop(data.mask[idx, None].to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
+    mask_full = data.mask[idx, None].to(device).float()
+    mask = crop(mask_full, c_centre, c_side, cfg.roi_out, "nearest")
+    # the covered fraction of each map cell (4×4 nearest samples per cell), for the BCE term
+    soft = crop(mask_full, c_centre, c_side, 4 * cfg.roi_out, "nearest")
+    soft = torch.nn.functional.avg_pool2d(soft, 4)
     xyz = crop(data.xyz[idx].to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
     fg = mask[:, 0] > 0.5
     xyz_hw = xyz.permute(0, 2, 3, 1)
@@ -167,6 +172,7 @@ def roi_batch(
     coord2d = roi_coord_2d(centre, side, cfg.roi_out, (H, W))
     target = {
         "mask_visib": fg[:, None].float(),
+        "mask_soft": soft,
         "xyz": xyz_n,
         "region": region,
         "R": R,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -21,6 +23,7 @@ from bopsurg.models.pose import (  # noqa: E402
     ego_to_allo,
     farthest_point_sampling,
     gdr_losses,
+    mask_probability,
     matrix_from_rot6d,
     pnp_ransac_from_output,
     pose_from_output,
@@ -370,6 +373,41 @@ def test_losses_decrease_in_a_few_adam_steps():
         assert last[key] < first[key], (key, first, last)
 
 
+def test_mask_probability_and_mask_losses():
+    cfg = PoseConfig.preset("test")
+    l1 = PoseConfig.from_dict({**cfg.to_dict(), "mask_loss": "l1"})
+    raw = torch.tensor([-3.0, 0.0, 0.4, 2.0])
+    assert torch.allclose(mask_probability(raw, cfg), torch.sigmoid(raw))
+    assert torch.equal(mask_probability(raw, l1), torch.tensor([0.0, 0.0, 0.4, 1.0]))
+    with pytest.raises(ValueError, match="mask_loss"):
+        PoseConfig.from_dict({**cfg.to_dict(), "mask_loss": "dice"})
+
+    img, coord2d, target, pts = _synthetic_batch(cfg, 2)
+    del img, coord2d
+    s = cfg.roi_out
+    base = {
+        "xyz": target["xyz"],
+        "region": torch.zeros(2, cfg.num_regions + 1, s, s),
+        "rot6d": rot6d_from_matrix(ego_to_allo(target["R"], target["t"])),
+        "site": target["site"],
+    }
+    # BCE against the soft mask: a hand-worked value for constant logits and targets
+    soft = torch.full((2, 1, s, s), 0.25)
+    logit = torch.full((2, 1, s, s), 0.5)
+    bce = gdr_losses({**base, "mask": logit}, {**target, "mask_soft": soft}, pts, cfg)["mask"]
+    expected = -(0.25 * math.log(torch.sigmoid(torch.tensor(0.5)).item()))
+    expected -= 0.75 * math.log(1 - torch.sigmoid(torch.tensor(0.5)).item())
+    assert bce.item() == pytest.approx(expected, rel=1e-6)
+    # the optimum of BCE is the soft target itself (logit(0.25)), not the 0/1 mask's median
+    at_target = torch.full((2, 1, s, s), math.log(0.25 / 0.75))
+    best = gdr_losses({**base, "mask": at_target}, {**target, "mask_soft": soft}, pts, cfg)
+    assert best["mask"] < bce
+    # L1 (GDR-Net's) on the raw output against the 0/1 mask
+    m = target["mask_visib"]
+    got = gdr_losses({**base, "mask": 0.25 * torch.ones_like(m)}, target, pts, l1)["mask"]
+    assert got.item() == pytest.approx((0.25 - m).abs().mean().item(), rel=1e-6)
+
+
 def test_symmetric_pm_loss_vanishes_for_a_symmetric_pose():
     cfg = PoseConfig.preset("test")
     img, coord2d, target, pts = _synthetic_batch(cfg, 2)
@@ -411,7 +449,7 @@ def test_pnp_recovers_the_pose_from_perfect_xyz_maps():
     normaliser = XyzNormaliser.from_vertices(xyz_roi.flatten(2)[0].T)
     out = {
         "xyz": normaliser.normalise(xyz_roi.permute(0, 2, 3, 1)).permute(0, 3, 1, 2),
-        "mask": torch.ones(1, 1, cfg.roi_out, cfg.roi_out, dtype=D64),
+        "mask": torch.full((1, 1, cfg.roi_out, cfg.roi_out), 10.0, dtype=D64),  # logits
     }
     R_est, t_est, ok = pnp_ransac_from_output(out, K, centre, side, normaliser, cfg)
     assert ok.tolist() == [True]
@@ -419,8 +457,8 @@ def test_pnp_recovers_the_pose_from_perfect_xyz_maps():
     assert _rot_err_deg(R_est[0], R[0].numpy()) < 1e-3
     assert np.abs(t_est[0] - t[0].numpy()).max() < 1e-3
 
-    out["mask"][:, :, 2:] = 0.0  # 2 rows × 16 = 32 points left
-    out["mask"][:, :, :, 2:] = 0.0  # 2×2 = 4 points: too few
+    out["mask"][:, :, 2:] = -10.0  # 2 rows × 16 = 32 points left
+    out["mask"][:, :, :, 2:] = -10.0  # 2×2 = 4 points: too few
     assert pnp_ransac_from_output(out, K, centre, side, normaliser, cfg)[2].tolist() == [False]
 
 

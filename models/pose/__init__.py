@@ -21,7 +21,7 @@ from bopsurg.models.pose.encodings import (
     site_encode,
 )
 from bopsurg.models.pose.losses import gdr_losses, point_matching
-from bopsurg.models.pose.network import GdrPoseNet
+from bopsurg.models.pose.network import GdrPoseNet, mask_probability
 from bopsurg.models.pose.roi import crop, crop_theta, dzi_boxes, roi_coord_2d, roi_grid_to_image
 from bopsurg.models.pose.targets import (
     XyzNormaliser,
@@ -41,6 +41,7 @@ __all__ = [
     "ego_to_allo",
     "farthest_point_sampling",
     "gdr_losses",
+    "mask_probability",
     "matrix_from_rot6d",
     "pnp_ransac_from_output",
     "point_matching",

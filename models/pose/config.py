@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 NORMS = ("gn", "bn")
+MASK_LOSSES = ("bce", "l1")
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,10 @@ class PoseConfig:
     pnp_fc: int = 512  # first Patch-PnP FC width; the second is 256
     norm: str = "gn"  # "gn" (GroupNorm, safe for small batches) or "bn"
     mask_attention: bool = False  # multiply the Patch-PnP input by the predicted mask
+    # "bce": sigmoid + BCE on the area-averaged mask (the fraction of each map cell the object
+    # covers). "l1": GDR-Net's raw L1 on a 0/1 mask; a wire thinner than a cell is mostly
+    # background there, so L1's median-seeking optimum is an empty mask (measured: max 0.001).
+    mask_loss: str = "bce"
     dzi_pad: float = 1.5  # crop side = pad · max(w, h)
     dzi_scale: float = 0.25  # train: side · U(1 − scale, 1 + scale)
     dzi_shift: float = 0.25  # train: centre + (w, h) · U(−shift, shift)
@@ -47,6 +52,8 @@ class PoseConfig:
             raise ValueError(f"roi_in must be a positive multiple of 32, got {self.roi_in}")
         if self.norm not in NORMS:
             raise ValueError(f"norm must be one of {NORMS}, got {self.norm!r}")
+        if self.mask_loss not in MASK_LOSSES:
+            raise ValueError(f"mask_loss must be one of {MASK_LOSSES}, got {self.mask_loss!r}")
         if len(self.blocks) != 4 or min(self.blocks) < 1:
             raise ValueError(f"blocks must be 4 positive counts, got {self.blocks}")
         if self.num_regions < 1:

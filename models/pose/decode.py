@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.encodings import allo_to_ego, matrix_from_rot6d, site_decode
+from bopsurg.models.pose.network import mask_probability
 from bopsurg.models.pose.roi import roi_grid_to_image
 from bopsurg.models.pose.targets import XyzNormaliser
 
@@ -52,12 +53,13 @@ def pnp_ransac_from_output(
     side: torch.Tensor,
     normaliser: XyzNormaliser,
     cfg: PoseConfig,
-    mask_thr: float = 0.5,
+    mask_thr: float = 0.3,
     reproj_px: float = 2.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Pose by RANSAC-PnP on the predicted xyz map (EPnP hypotheses, LM refinement on inliers).
 
-    Correspondences: every output-map pixel whose raw mask exceeds ``mask_thr``; its 2D point is
+    Correspondences: every output-map pixel whose mask probability (:func:`mask_probability`)
+    exceeds ``mask_thr`` (a cell about one third covered by the object); its 2D point is
     the pixel's image position (``centre + (u − S/2)·side/S``, px) and its 3D point the
     de-normalised predicted xyz (object frame, mm).
 
@@ -77,7 +79,7 @@ def pnp_ransac_from_output(
     """
     uv = roi_grid_to_image(centre, side, cfg.roi_out)
     xyz = normaliser.denormalise(out["xyz"].permute(0, 2, 3, 1))
-    fg = out["mask"][:, 0] > mask_thr
+    fg = mask_probability(out["mask"][:, 0], cfg) > mask_thr
     uv_np = uv.detach().cpu().double().numpy()
     xyz_np = xyz.detach().cpu().double().numpy()
     fg_np = fg.cpu().numpy()

@@ -2,8 +2,10 @@
 
 All terms follow GDR-Net's definitions (every weight 1 by default, total = weighted sum):
 
-- mask: mean L1 between the raw mask output and the visible mask (GDR-Net uses the truncated
-  mask, which equals the visible one without background replacement).
+- mask: with ``cfg.mask_loss="bce"`` (default) the mean binary cross-entropy between the
+  mask logits and the soft visible mask (the fraction of each cell covered, ``"mask_soft"``);
+  with ``"l1"`` GDR-Net's mean L1 between the raw output and the 0/1 visible mask (GDR-Net
+  uses the truncated mask, which equals the visible one without background replacement).
 - xyz: ``Σ M·|x̂ − x̄| / max(1, ΣM)`` per channel, summed over the 3 channels (M = visible mask,
   sums over the whole batch).
 - region: cross-entropy over R + 1 classes on the visible pixels, ``Σ M·CE / max(1, ΣM)``.
@@ -64,10 +66,13 @@ def gdr_losses(
 
     Args:
         out: :class:`~.network.GdrPoseNet` outputs.
-        target: ``"mask_visib"`` (B, 1, s, s) float {0, 1}; ``"xyz"`` (B, 3, s, s) normalised;
-            ``"region"`` (B, s, s) long; ``"R"`` (B, 3, 3) egocentric GT; ``"site"`` (B, 3)
-            SITE GT; and for decoding the predicted translation ``"K"`` (B, 3, 3), ``"centre"``
-            (B, 2) px, ``"wh"`` (B, 2) px, ``"side"`` (B,) px. ``"t"`` may be present (unused).
+        target: ``"mask_visib"`` (B, 1, s, s) float {0, 1} (where xyz and region are
+            defined); optionally ``"mask_soft"`` (B, 1, s, s) in [0, 1], the covered fraction
+            of each cell, for the BCE mask term (default: ``"mask_visib"``); ``"xyz"``
+            (B, 3, s, s) normalised; ``"region"`` (B, s, s) long; ``"R"`` (B, 3, 3)
+            egocentric GT; ``"site"`` (B, 3) SITE GT; and for decoding the predicted
+            translation ``"K"`` (B, 3, 3), ``"centre"`` (B, 2) px, ``"wh"`` (B, 2) px,
+            ``"side"`` (B,) px. ``"t"`` may be present (unused).
         model_points: (P, 3) model points, mm (≤ 3000 keeps the PM term cheap).
         cfg: sizes, SITE unit, weights, and ``symmetric``.
         sym_rotations: (S, 3, 3) symmetry rotations; used only when ``cfg.symmetric``.
@@ -80,7 +85,11 @@ def gdr_losses(
     valid = m.flatten(1).sum(dim=1) > 0  # (B,) samples that show the object
     n_valid = valid.sum().clamp(min=1)
 
-    loss_mask = (out["mask"] - m).abs().mean()
+    if cfg.mask_loss == "bce":
+        soft = target.get("mask_soft", m)
+        loss_mask = F.binary_cross_entropy_with_logits(out["mask"], soft)
+    else:
+        loss_mask = (out["mask"] - m).abs().mean()
 
     # where() before abs(): a non-finite background target cannot leak NaN into the gradient
     xyz_diff = torch.where(m > 0, out["xyz"] - target["xyz"], 0.0)

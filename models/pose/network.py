@@ -163,6 +163,12 @@ class PatchPnP(nn.Module):
         return self.fc_rot(h), self.fc_t(h)
 
 
+def mask_probability(mask: torch.Tensor, cfg: PoseConfig) -> torch.Tensor:
+    """The raw "mask" output as a foreground probability in [0, 1] (sigmoid of the logits for
+    ``mask_loss="bce"``, the clamped regression for ``"l1"``)."""
+    return torch.sigmoid(mask) if cfg.mask_loss == "bce" else mask.clamp(0.0, 1.0)
+
+
 class GdrPoseNet(nn.Module):
     """The whole pose head; see the module docstring for the data flow."""
 
@@ -181,7 +187,8 @@ class GdrPoseNet(nn.Module):
             roi_coord2d: (B, 2, S_out, S_out) from :func:`~.roi.roi_coord_2d`.
 
         Returns:
-            ``"mask"`` (B, 1, S_out, S_out) raw (L1-regressed, no sigmoid), ``"xyz"``
+            ``"mask"`` (B, 1, S_out, S_out) raw (logits with ``mask_loss="bce"``, the
+            L1-regressed value with ``"l1"``; :func:`mask_probability` maps both), ``"xyz"``
             (B, 3, S_out, S_out) normalised, ``"region"`` (B, R + 1, S_out, S_out) logits
             (channel 0 = background), ``"rot6d"`` (B, 6) allocentric, ``"site"`` (B, 3).
         """
@@ -189,6 +196,6 @@ class GdrPoseNet(nn.Module):
         mask, xyz, region = maps[:, :1], maps[:, 1:4], maps[:, 4:]
         pnp_in = torch.cat([xyz - 0.5, roi_coord2d, F.softmax(region[:, 1:], dim=1)], dim=1)
         if self.cfg.mask_attention:
-            pnp_in = pnp_in * mask.clamp(0.0, 1.0)
+            pnp_in = pnp_in * mask_probability(mask, self.cfg)
         rot6d, site = self.pnp(pnp_in)
         return {"mask": mask, "xyz": xyz, "region": region, "rot6d": rot6d, "site": site}
