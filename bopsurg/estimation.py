@@ -152,6 +152,13 @@ class PoseEstimator(Protocol):
         ...
 
 
+def estimator_report(estimator: object) -> str | None:
+    """An estimator's optional one-line account of a finished run (``report()``, e.g. how often
+    a decoding path fell back), or None when it offers none."""
+    report = getattr(estimator, "report", None)
+    return report() if callable(report) else None
+
+
 EstimatorFactory = Any  # Callable[[Mapping[str, str]], PoseEstimator]
 
 

@@ -84,7 +84,8 @@ class GdrNetEstimator:
         device: Torch device name (``auto`` = CUDA when available).
         conf: Minimum detection score kept.
         max_per_object: Boxes (hence poses) kept per object and image, best first.
-        decode: ``direct`` (rotation + SITE heads) or ``pnp`` (PnP-RANSAC on the coordinates).
+        decode: ``direct`` (rotation + SITE heads) or ``pnp`` (PnP-RANSAC on the coordinates;
+            a ROI where PnP finds no solution keeps the direct pose, see ``pnp_fallback``).
     """
 
     def __init__(
@@ -105,6 +106,10 @@ class GdrNetEstimator:
         self.heads = {h.obj_id: h for h in heads}
         self.obj_ids = tuple(sorted(self.heads))
         self.conf, self.max_per_object, self.decode = conf, max_per_object, decode
+        #: With ``decode="pnp"``: ROIs solved by PnP-RANSAC, and those that fell back to the
+        #: direct decoding (too few mask pixels or inliers); a bench reports both.
+        self.pnp_solved = 0
+        self.pnp_fallback = 0
 
     @torch.inference_mode()
     def detect(self, rgb: np.ndarray) -> Detections:
@@ -118,6 +123,15 @@ class GdrNetEstimator:
         xywh = np.concatenate([xyxy[:, :2], xyxy[:, 2:] - xyxy[:, :2]], axis=1)
         obj = np.array([self.detector.classes[int(c)] for c in det[:, 5]], np.int64)
         return Detections(obj, det[:, 4], xywh)
+
+    def report(self) -> str | None:
+        """How the PnP decoding went (``decode="pnp"``), for the end of ``bopsurg predict``."""
+        if self.decode != "pnp":
+            return None
+        return (
+            f"PnP-RANSAC solved {self.pnp_solved} ROIs, {self.pnp_fallback} fell back to the "
+            "direct decoding"
+        )
 
     def _select(self, boxes: Detections, obj_ids: tuple[int, ...]) -> Detections:
         keep = []
@@ -164,6 +178,10 @@ class GdrNetEstimator:
                 R_d, t_d = pose_from_output(out, K_b, centre, box_xywh[:, 2:], side, cfg)
                 R = np.where(ok[:, None, None], R, R_d.double().cpu().numpy())
                 t = np.where(ok[:, None], t, t_d.double().cpu().numpy())
+                self.pnp_solved += int(ok.sum())
+                self.pnp_fallback += int((~ok).sum())
+                if not ok.all():
+                    log.debug("pnp: %d of %d ROIs fell back to direct decoding", (~ok).sum(), n)
             else:
                 R_t, t_t = pose_from_output(out, K_b, centre, box_xywh[:, 2:], side, cfg)
                 R, t = R_t.double().cpu().numpy(), t_t.double().cpu().numpy()

@@ -92,7 +92,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Execute the subcommand."""
     from bopsurg.bop.detections import load_detections
-    from bopsurg.estimation import load_estimator
+    from bopsurg.estimation import estimator_report, load_estimator
     from bopsurg.prediction import predict_dataset
 
     if args.max_images is not None and args.max_images < 1:
@@ -121,6 +121,9 @@ def run(args: argparse.Namespace) -> int:
         f"{len(done.estimates)} estimates in {done.images} images, "
         f"{1000 * done.mean_time:.1f} ms per image -> {args.out}"
     )
+    report = estimator_report(estimator)
+    if report:
+        print(f"{args.estimator}: {report}")
     if len(done.estimates) == 0:
         log.warning("the estimator found nothing in %d images", done.images)
     print(f"next: bopsurg eval {args.dataset} {args.out} --split {args.split} --out EVAL_DIR")

@@ -14,6 +14,7 @@ import pytest
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.detections import save_detections
+from bopsurg.bop.images import load_rgb
 from bopsurg.bop.results import load_results
 from bopsurg.cli.main import main
 from bopsurg.estimation import Detections, load_estimator
@@ -128,7 +129,7 @@ def test_predict_then_eval(dataset, trained, tmp_path, capsys):
     assert summary  # scored; accuracy after 2 tiny epochs is meaningless
 
 
-def test_external_boxes_and_pnp_decoding(dataset, trained, tmp_path):
+def test_external_boxes_and_pnp_decoding(dataset, trained, tmp_path, capsys):
     det, pose = trained
     ds = BopDataset(dataset, "test")
     boxes = {}
@@ -142,6 +143,7 @@ def test_external_boxes_and_pnp_decoding(dataset, trained, tmp_path):
     out = tmp_path / "res.csv"
     args = ["predict", str(dataset), "--out", str(out), "--pose", str(pose), "--boxes", str(path)]
     assert main([*args, "--option", "decode=pnp", "--detector", str(det), "--no-progress"]) == 0
+    assert "gdrnet: PnP-RANSAC solved" in capsys.readouterr().out
     est = load_results(out)
     assert set(zip(est.scene_id.tolist(), est.im_id.tolist(), strict=False)) <= set(boxes)
     assert len(est) > 0
@@ -198,6 +200,16 @@ def test_the_demo_runs_the_main_job_end_to_end(tmp_path, capsys):
     assert f"rerun {rrd}" in out
     assert len(load_results(tmp_path / "results.csv")) > 0
     assert (tmp_path / "detections.json").is_file()
+
+    # the shipped pose head predicts masks that PnP-RANSAC can use (not an empty mask that
+    # silently falls back to the direct decoding on every ROI)
+    est = load_estimator("gdrnet", {"device": "cpu", "decode": "pnp"})
+    ds = BopDataset(tmp_path / "data", "test")
+    for s in ds.scene_ids:
+        scene = ds.scene(s)
+        for im_id in scene.im_ids:
+            est.predict(load_rgb(scene.rgb_path(im_id)), scene.camera[im_id].K)
+    assert est.pnp_solved > 2 * est.pnp_fallback, est.report()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
