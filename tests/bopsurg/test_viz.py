@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import builtins
+import dataclasses
 
 import numpy as np
 import pandas as pd
@@ -104,6 +105,20 @@ def test_detector_boxes_are_drawn_on_their_frame(logged):
     others = [r for f, r in rows.items() if f != frame]
     assert others
     assert all(not r["Boxes2D:centers"] for r in others)  # cleared on frames without boxes
+
+
+def test_histograms_count_the_instances_of_the_table(example, logged, tmp_path):
+    ev, _, _ = logged
+    errors = ev.errors.copy()
+    matched = np.flatnonzero(errors["gt_id"] >= 0)
+    errors.loc[matched[0], "visib_fract"] = 0.1  # below the table's 0.3: not in Fig. 4 either
+    low = dataclasses.replace(ev, errors=errors)
+    dataset = BopDataset(example.root, example.split)
+    path = log_evaluation(dataset, load_results(example.results), low, tmp_path / "low.rrd")
+    store = RrdReader(str(path)).stream().collect()
+    bars = [c for c in store.stream() if c.entity_path == "/histograms/mssd"]
+    counts = bars[0].to_record_batch().to_pylist()[0]["BarChart:values"][0]["buffer"]
+    assert sum(counts) == len(matched) - 1
 
 
 def test_histogram_plot_marks_the_median():
