@@ -13,9 +13,9 @@ picks up where it stopped):
 
 It prints the dataset and model sizes, the training times and the evaluation tables, and
 writes OUT/bench_estimators.json. With --ship DIR it also copies the trained weights there
-and writes DIR/MODEL_CARD.md from the measured numbers (that is how the shipped model in
-models/weights was made: `python bench/bench_estimators.py --out runs/bench --ship
-models/weights`).
+and writes DIR/MODEL_CARD.md from the measured numbers. The defaults are the shipped model's
+recipe (6,088 training frames; detector 10 and pose head 24 epochs, 47 min on a 2-core CPU):
+`python bench/bench_estimators.py --out runs/bench --ship models/weights` remakes it.
 
     python bench/bench_estimators.py --out runs/bench [--device cuda] [--quick]
 """
@@ -80,14 +80,14 @@ def main() -> None:
     ap.add_argument("--out", required=True, help="work folder (resumed)")
     ap.add_argument("--train-bags", type=int, default=4)
     ap.add_argument("--test-bags", type=int, default=2)
-    ap.add_argument("--train-replays", type=int, default=40)
+    ap.add_argument("--train-replays", type=int, default=100)
     ap.add_argument("--test-replays", type=int, default=16)
     ap.add_argument(
         "--period", type=float, default=2.0, help="s between frames: many viewpoints, fewer frames"
     )
     ap.add_argument("--duration", type=float, default=30.0)
-    ap.add_argument("--det-epochs", type=int, default=24)
-    ap.add_argument("--pose-epochs", type=int, default=40)
+    ap.add_argument("--det-epochs", type=int, default=10)
+    ap.add_argument("--pose-epochs", type=int, default=24)
     ap.add_argument(
         "--detector",
         default=None,
@@ -281,12 +281,12 @@ def _split_line(summary: dict, split: str, bucket: str) -> str:
 RECIPE_DEFAULTS = {
     "train_bags": 4,
     "test_bags": 2,
-    "train_replays": 40,
+    "train_replays": 100,
     "test_replays": 16,
     "period": 2.0,
     "duration": 30.0,
-    "det_epochs": 24,
-    "pose_epochs": 40,
+    "det_epochs": 10,
+    "pose_epochs": 24,
 }
 
 
