@@ -11,14 +11,17 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bopsurg.bop._validate import Issues, get_dict, get_float, get_floats, get_int, get_list
 from bopsurg.bop.jsonio import load_json, save_json
-from bopsurg.errors import ResultsError
+from bopsurg.errors import BopsurgError, ResultsError
 from bopsurg.estimation import Detections
+
+if TYPE_CHECKING:
+    from bopsurg.bop.dataset import BopDataset
 
 _KEYS = ("scene_id", "image_id", "category_id", "score", "bbox")
 
@@ -103,3 +106,36 @@ def save_detections(
                 }
             )
     save_json(path, entries)
+
+
+def gt_detections(dataset: BopDataset) -> dict[ImageKey, Detections]:
+    """Oracle boxes: every GT instance's visible box as a detection with score 1.
+
+    Running an estimator on these instead of its detector's boxes separates the detector's
+    share of the pose error from the pose stage's. BOP's ``bbox_visib`` has
+    ``w = x_max − x_min``; a detection box spans whole pixels, so its width is one more.
+    Instances with nothing visible get no box.
+
+    Raises:
+        BopsurgError: A scene has no ``scene_gt_info.json`` (run ``bopsurg annotate``).
+    """
+    out: dict[ImageKey, Detections] = {}
+    for scene_id in dataset.scene_ids:
+        scene = dataset.scene(scene_id)
+        infos = scene.gt_info
+        if infos is None:
+            raise BopsurgError(
+                f"{scene.scene_dir / 'scene_gt_info.json'}: missing, needed for the GT boxes"
+            )
+        for im_id, gts in scene.gt.items():
+            rows = [
+                (gt.obj_id, info.bbox_visib)
+                for gt, info in zip(gts, infos[im_id], strict=True)
+                if info.bbox_visib[2] >= 0
+            ]
+            if rows:
+                boxes = np.array([b for _, b in rows], np.float64) + np.array([0, 0, 1, 1])
+                out[(scene_id, im_id)] = Detections(
+                    np.array([o for o, _ in rows], np.int64), np.ones(len(rows)), boxes
+                )
+    return out

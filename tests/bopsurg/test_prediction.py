@@ -9,7 +9,7 @@ import pytest
 
 from bopsurg import plugins
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.detections import load_detections, save_detections
+from bopsurg.bop.detections import gt_detections, load_detections, save_detections
 from bopsurg.bop.results import load_results
 from bopsurg.cli.main import main
 from bopsurg.errors import ResultsError, ShapeError
@@ -100,6 +100,28 @@ def test_detections_json_round_trip_and_errors(tmp_path):
     path.write_text(json.dumps(entries))
     with pytest.raises(ResultsError, match="positive"):
         load_detections(path)
+
+
+def test_gt_detections_are_the_visible_boxes_in_pixel_spans(example):
+    ds = BopDataset(example.root, example.split)
+    boxes = gt_detections(ds)
+    n = 0
+    for s in ds.scene_ids:
+        scene = ds.scene(s)
+        for im_id, infos in scene.gt_info.items():
+            visible = [
+                (g, i) for g, i in zip(scene.gt[im_id], infos, strict=True) if i.px_count_visib
+            ]
+            n += len(visible)
+            if not visible:
+                assert (s, im_id) not in boxes
+                continue
+            det = boxes[(s, im_id)]
+            assert det.obj_id.tolist() == [g.obj_id for g, _ in visible]
+            assert det.score.tolist() == [1.0] * len(visible)
+            x, y, w, h = visible[0][1].bbox_visib  # BOP: w = x_max - x_min
+            assert det.bbox[0].tolist() == [x, y, w + 1, h + 1]
+    assert n == sum(len(d) for d in boxes.values()) > 0
 
 
 def test_predict_dataset_writes_timed_results_and_resumes_after_a_kill(example, tmp_path):

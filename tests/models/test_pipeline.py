@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.detections import save_detections
+from bopsurg.bop.detections import gt_detections, save_detections
 from bopsurg.bop.images import load_rgb
 from bopsurg.bop.results import load_results
 from bopsurg.cli.main import main
-from bopsurg.estimation import Detections, load_estimator
+from bopsurg.estimation import load_estimator
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("pybullet")
@@ -131,13 +131,9 @@ def test_predict_then_eval(dataset, trained, tmp_path, capsys):
 
 def test_external_boxes_and_pnp_decoding(dataset, trained, tmp_path, capsys):
     det, pose = trained
-    ds = BopDataset(dataset, "test")
-    boxes = {}
-    for s in ds.scene_ids:
-        for im_id, infos in ds.scene(s).gt_info.items():
-            b = infos[0].bbox_visib
-            if b[2] > 0:
-                boxes[(s, im_id)] = Detections([1], [1.0], [[b[0], b[1], b[2] + 1, b[3] + 1]])
+    boxes = {
+        k: d.subset(d.obj_id == 1) for k, d in gt_detections(BopDataset(dataset, "test")).items()
+    }
     path = tmp_path / "gt_boxes.json"
     save_detections(path, boxes)
     out = tmp_path / "res.csv"
