@@ -12,6 +12,7 @@ import shutil
 import numpy as np
 import pytest
 
+from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.detections import gt_detections, save_detections
 from bopsurg.bop.images import load_rgb
@@ -197,15 +198,22 @@ def test_the_demo_runs_the_main_job_end_to_end(tmp_path, capsys):
     assert len(load_results(tmp_path / "results.csv")) > 0
     assert (tmp_path / "detections.json").is_file()
 
-    # the shipped pose head predicts masks that PnP-RANSAC can use (not an empty mask that
-    # silently falls back to the direct decoding on every ROI)
+    # the shipped pose head predicts masks that PnP-RANSAC can use: not an empty mask that
+    # silently falls back to the direct decoding on every ROI, nor an uninformative one: a
+    # mask of 0.5 everywhere also solves most ROIs, but at a median RE of 57 deg on these 18
+    # frames (68 deg on the default demo's 146), against 22 deg (18) for the shipped mask
     est = load_estimator("gdrnet", {"device": "cpu", "decode": "pnp"})
     ds = BopDataset(tmp_path / "data", "test")
+    R_est, R_gt = [], []
     for s in ds.scene_ids:
         scene = ds.scene(s)
         for im_id in scene.im_ids:
-            est.predict(load_rgb(scene.rgb_path(im_id)), scene.camera[im_id].K)
+            pred = est.predict(load_rgb(scene.rgb_path(im_id)), scene.camera[im_id].K)
+            if len(pred):
+                R_est.append(pred.R[0])
+                R_gt.append(scene.gt[im_id][0].R)
     assert est.pnp_solved > 2 * est.pnp_fallback, est.report()
+    assert np.median(metrics.re(np.array(R_est), np.array(R_gt))) < 40.0
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
