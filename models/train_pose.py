@@ -159,9 +159,10 @@ def roi_batch(
         roi_img = hsv_jitter(roi_img, gen, *hsv)
     mask_full = data.mask[idx, None].to(device).float()
     mask = crop(mask_full, c_centre, c_side, cfg.roi_out, "nearest")
-    # the covered fraction of each map cell (4×4 nearest samples per cell), for the BCE term
-    soft = crop(mask_full, c_centre, c_side, 4 * cfg.roi_out, "nearest")
-    soft = torch.nn.functional.avg_pool2d(soft, 4)
+    soft = None  # the covered fraction of each map cell (4×4 nearest samples), for BCE only
+    if cfg.mask_loss == "bce":
+        soft = crop(mask_full, c_centre, c_side, 4 * cfg.roi_out, "nearest")
+        soft = torch.nn.functional.avg_pool2d(soft, 4)
     xyz = crop(data.xyz[idx].to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
     fg = mask[:, 0] > 0.5
     xyz_hw = xyz.permute(0, 2, 3, 1)
@@ -172,7 +173,6 @@ def roi_batch(
     coord2d = roi_coord_2d(centre, side, cfg.roi_out, (H, W))
     target = {
         "mask_visib": fg[:, None].float(),
-        "mask_soft": soft,
         "xyz": xyz_n,
         "region": region,
         "R": R,
@@ -184,6 +184,8 @@ def roi_batch(
         "wh": wh,
         "side": side,
     }
+    if soft is not None:
+        target["mask_soft"] = soft
     return roi_img, coord2d, target
 
 
