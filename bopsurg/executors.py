@@ -33,7 +33,7 @@ UnitFn = Callable[[Any, Report], Any]
 class Executor(Protocol):
     """Runs ``fn`` over units, in any order, and returns the results in input order."""
 
-    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list:
+    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list[Any]:
         """Run every unit; ``on_progress(n)`` is called in this process as work is reported."""
         ...
 
@@ -68,7 +68,7 @@ class LocalExecutor:
             raise BopsurgError("workers must be >= 1")
         self.workers = workers
 
-    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list:
+    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list[Any]:
         """See :class:`Executor`."""
         report = on_progress or _noop
         if self.workers == 1 or len(units) <= 1:
@@ -108,7 +108,7 @@ class RayExecutor:
         self.max_retries = max_retries
         self.num_cpus = num_cpus
 
-    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list:
+    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list[Any]:
         """See :class:`Executor`."""
         import ray
         from ray.util.queue import Queue
