@@ -159,10 +159,10 @@ def test_literal_defaults_and_help_lines_match_the_code():
     from bopsurg.visibility import DEFAULT_DELTA_MM
     from bopsurg.viz.rerun_log import DEFAULT_IMAGE_FRAMES
 
-    assert eval_cmd.METRICS == ",".join(INSTANCE_METRICS)
+    assert ",".join(INSTANCE_METRICS) == eval_cmd.METRICS
     assert annotate_cmd.DEFAULT_DELTA_MM == DEFAULT_DELTA_MM
     fields = {f.name: f.default for f in dataclasses.fields(ExampleSpec)}
-    assert example_cmd.SPEC_DEFAULTS == {k: fields[k] for k in example_cmd.SPEC_DEFAULTS}
+    assert {k: fields[k] for k in example_cmd.SPEC_DEFAULTS} == example_cmd.SPEC_DEFAULTS
     assert f"up to {DEFAULT_IMAGE_FRAMES} frames" in viz_cmd.DESCRIPTION
     assert f"the {DEFAULT_IMAGE_FRAMES} worst" in viz_cmd.DESCRIPTION
     commands = available_plugins("command")
@@ -171,7 +171,7 @@ def test_literal_defaults_and_help_lines_match_the_code():
             module = importlib.import_module(commands[name].value)
         except ImportError:  # that extra is not installed here
             continue
-        assert module.HELP == line, name
+        assert line == module.HELP, name
 
 
 def test_plugin_command_with_missing_dependency_is_a_one_line_hint(capsys, monkeypatch):
