@@ -83,8 +83,8 @@ def main() -> None:
         per_frame_core = 2 * ray / frames  # core-seconds per frame on this machine, Ray included
         print("estimate for 100,000 frames (CPU time scales with nodes; per-node cores as here):")
         for nodes, cores in ((1, 2), (4, 16), (16, 16), (64, 16)):
-            hours = 100_000 * per_frame_core / (nodes * cores) / 3600
-            print(f"  {nodes:>3} node(s) x {cores:>2} cores: {hours:6.2f} h")
+            minutes = 100_000 * per_frame_core / (nodes * cores) / 60
+            print(f"  {nodes:>3} node(s) x {cores:>2} cores: {minutes:7.1f} min")
     finally:
         cluster.close()
         shutil.rmtree(work, ignore_errors=True)
