@@ -22,7 +22,14 @@ from bopsurg.bop.results import save_results
 from bopsurg.cli.main import main
 from bopsurg.example import ExampleSpec, write_example_dataset
 from tests.helpers import estimates_from_gt
-from tests.ray_netns import PORT, Cluster, ClusterError, netns_available, netns_exists
+from tests.ray_netns import (
+    PORT,
+    Cluster,
+    ClusterError,
+    netns_available,
+    netns_exists,
+    netns_pids,
+)
 
 pytest.importorskip("ray")
 pytest.importorskip("pybullet")
@@ -198,8 +205,6 @@ class _Recorded(Cluster):
 
     def close(self) -> None:
         _Recorded.last = self
-        from tests.ray_netns import netns_pids
-
         if self._ns_made:
             self.pids_at_close = netns_pids(self.ns)
         super().close()
