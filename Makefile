@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.bopsurg-installed
 DEMO_OUT ?= demo_out
 
-.PHONY: demo test lint bench venv clean
+.PHONY: demo test test-after-ray lint bench venv clean
 
 venv: $(STAMP)
 
@@ -25,6 +25,18 @@ lint: $(STAMP)
 
 test: lint
 	$(BIN)/python -m pytest -q
+
+# The suite again on the same machine, as a user who tried Ray would run it: with a HOME in
+# which Ray left ~/.ray/auth_token (its first local cluster writes one) and right after a
+# local Ray instance ran a bopsurg command. Catches tests that depend on what ran before.
+test-after-ray: $(STAMP)
+	home=$$(mktemp -d) && trap 'rm -rf "$$home"' EXIT && \
+	HOME=$$home $(BIN)/ray get-auth-token --generate >/dev/null && \
+	test -s $$home/.ray/auth_token && \
+	HOME=$$home $(BIN)/bopsurg example --out $$home/ex --scenes 1 --images 3 >/dev/null && \
+	HOME=$$home $(BIN)/bopsurg -q eval $$home/ex/needle $$home/ex/bopsurgsim_needle-test.csv \
+		--out $$home/ev --no-progress --executor ray >/dev/null && \
+	HOME=$$home $(BIN)/python -m pytest -q -p no:cacheprovider
 
 bench: $(STAMP)
 	$(BIN)/python bench/bench_metrics.py

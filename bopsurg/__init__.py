@@ -1,6 +1,6 @@
 """bopsurg: BOP metrics and formats, synthetic data and estimators for surgical 6D pose.
 
-The core (this package) needs only numpy, scipy, pandas, trimesh and OpenCV:
+The core (this package) needs only numpy, scipy, pandas, OpenCV and tqdm:
 
 - :mod:`bopsurg.metrics`: batched BOP pose errors (RE, TE, MSSD, MSPD, ADD, ADD-S, VSD).
 - :mod:`bopsurg.bop`: BOP datasets and results, read and written as the BOP toolkit does.

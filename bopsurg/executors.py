@@ -8,19 +8,34 @@ their own files, so a unit retried after a crashed worker finishes the same way.
 - :class:`LocalExecutor` (the default): ``spawn``-ed worker processes; one worker runs in
   this process.
 - :class:`RayExecutor`: Ray tasks with automatic retries (``max_retries``), progress through
-  a cluster-wide queue. Connects to ``address`` or starts a local Ray instance. Datasets must
+  a counter actor. Connects to ``address`` or starts a local Ray instance. Datasets must
   live on a path that every node sees (shared storage); results come back in input order, so
   outputs are byte-identical to the local executor's.
+
+Ray authentication: a cluster started with token authentication (Ray's default for new
+clusters) needs ``RAY_AUTH_MODE=token`` here and the head's token (``ray get-auth-token``
+there prints it) in ``RAY_AUTH_TOKEN`` or in a file named by ``RAY_AUTH_TOKEN_PATH``, as
+every node of it does; a cluster without authentication needs ``RAY_AUTH_MODE`` unset or
+``disabled``. A mismatch is a one-line error. A local instance (no address) gets a throwaway
+token for its lifetime, so it leaves no ``~/.ray/auth_token`` behind to change how later
+clusters start.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import logging
 import multiprocessing as mp
+import os
 import queue as queue_mod
+import secrets
+import socket
+import sys
+import tempfile
 import time
-from collections.abc import Callable, Sequence
-from typing import Any, Protocol
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import IO, Any, Protocol
 
 from bopsurg.errors import BopsurgError
 
@@ -33,7 +48,7 @@ UnitFn = Callable[[Any, Report], Any]
 class Executor(Protocol):
     """Runs ``fn`` over units, in any order, and returns the results in input order."""
 
-    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list:
+    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list[Any]:
         """Run every unit; ``on_progress(n)`` is called in this process as work is reported."""
         ...
 
@@ -68,7 +83,7 @@ class LocalExecutor:
             raise BopsurgError("workers must be >= 1")
         self.workers = workers
 
-    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list:
+    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list[Any]:
         """See :class:`Executor`."""
         report = on_progress or _noop
         if self.workers == 1 or len(units) <= 1:
@@ -108,39 +123,185 @@ class RayExecutor:
         self.max_retries = max_retries
         self.num_cpus = num_cpus
 
-    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list:
+    def map(self, fn: UnitFn, units: Sequence[Any], on_progress: Report | None = None) -> list[Any]:
         """See :class:`Executor`."""
         import ray
-        from ray.util.queue import Queue
 
         report = on_progress or _noop
         started_here = not ray.is_initialized()
-        if started_here:
-            ray.init(address=self.address, log_to_driver=False, configure_logging=False)
-        try:
-            progress = Queue()
-            task = ray.remote(max_retries=self.max_retries, num_cpus=self.num_cpus)(_ray_call)
-            refs = [task.remote(fn, unit, progress) for unit in units]
-            remaining = list(refs)
-            while remaining:
-                _, remaining = ray.wait(remaining, num_returns=len(remaining), timeout=0.2)
-                while not progress.empty():
-                    report(progress.get_nowait())
-            results = ray.get(refs)  # re-raises a unit's error here
-            while not progress.empty():
-                report(progress.get_nowait())
-            return results
-        finally:
+        with contextlib.ExitStack() as stack:
             if started_here:
-                ray.shutdown()
+                stack.callback(_refresh_auth_config)  # last: Ray sees the restored variables
+                stack.enter_context(_environ(_auth_env(self.address, os.environ)))
+                _connect(ray, self.address)
+                stack.callback(ray.shutdown)
+            return self._run(ray, fn, units, report)
+
+    def _run(self, ray: Any, fn: UnitFn, units: Sequence[Any], report: Report) -> list[Any]:
+        counter = ray.remote(num_cpus=0)(_ProgressCounter).remote()
+        try:  # the first round trip to an actor: a driver the cluster cannot serve fails here
+            ray.get(counter.take.remote())
+        except ray.exceptions.RayError as err:
+            mode = os.environ.get("RAY_AUTH_MODE", "unset")
+            raise BopsurgError(
+                f"the Ray cluster at {self.address or 'this machine'} cannot run this driver's "
+                f"work ({type(err).__name__}); with RAY_AUTH_MODE={mode} here, check that the "
+                "cluster uses the same authentication (RAY_AUTH_MODE=token on every node, or "
+                "none anywhere)"
+            ) from None
+        task = ray.remote(max_retries=self.max_retries, num_cpus=self.num_cpus)(_ray_call)
+        refs = [task.remote(fn, unit, counter) for unit in units]
+        remaining = list(refs)
+        while remaining:
+            _, remaining = ray.wait(remaining, num_returns=len(remaining), timeout=0.5)
+            report(ray.get(counter.take.remote()))  # one round trip per poll
+        results: list[Any] = ray.get(refs)  # re-raises a unit's error here
+        report(ray.get(counter.take.remote()))
+        return results
+
+
+#: Ray's authentication variables (see the module docstring).
+AUTH_VARS = ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")
+
+
+def _auth_env(address: str | None, environ: Mapping[str, str]) -> dict[str, str]:
+    """Authentication variables to set while using ``address``: for a local instance (None)
+    a throwaway token, unless the user set any of :data:`AUTH_VARS`; else none."""
+    if address is not None or any(v in environ for v in AUTH_VARS):
+        return {}
+    return {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+
+
+@contextlib.contextmanager
+def _environ(values: Mapping[str, str]) -> Iterator[None]:
+    """``os.environ`` updated with ``values`` inside the block, restored after."""
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for key, old in saved.items():
+            if old is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = old
+
+
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail fast, in one line, when nothing listens at ``HOST:PORT`` (Ray itself retries for
+    minutes); other address forms (``auto``, ``ray://...``) are left to Ray."""
+    if address == "auto" or "://" in address:
+        return
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise BopsurgError(f"--ray-address {address!r}: expected HOST:PORT of the Ray head")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as err:
+        raise BopsurgError(
+            f"cannot reach a Ray cluster at {address} ({err.strerror or err}); is the head "
+            "running ('ray start --head --port=PORT') and is the address right?"
+        ) from None
+
+
+def _connect(ray: Any, address: str | None) -> None:
+    """``ray.init``, with Ray's long errors turned into one line that says what to fix."""
+    if address is not None:
+        _check_reachable(address)
+    _refresh_auth_config()
+    with tempfile.TemporaryFile() as captured:
+        try:
+            with _stderr_to(captured):  # Ray's C++ core logs its retries there
+                ray.init(address=address, log_to_driver=False, configure_logging=False)
+        except Exception as err:
+            raise BopsurgError(_connect_error(err, address)) from None
+        finally:
+            captured.seek(0)
+            log.debug("ray.init: %s", captured.read().decode(errors="replace").strip())
+
+
+def _refresh_auth_config() -> None:
+    """Make Ray read the authentication variables again: it caches them when ``ray`` is
+    first imported, and they may have changed since (see :func:`_auth_env`)."""
+    raylet = importlib.import_module("ray._raylet")
+    config = getattr(raylet, "Config", None)
+    loader = getattr(raylet, "AuthenticationTokenLoader", None)
+    if config is None or loader is None:  # a Ray without token authentication
+        return
+    config.initialize("")
+    loader.instance().reset_cache()
+
+
+@contextlib.contextmanager
+def _stderr_to(file: IO[bytes]) -> Iterator[None]:
+    """File descriptor 2 (C/C++ code writes there too, not only ``sys.stderr``) sent to
+    ``file`` inside the block."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    os.dup2(file.fileno(), 2)
+    try:
+        yield
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _connect_error(err: BaseException, address: str | None) -> str:
+    where = f"the Ray cluster at {address}" if address else "a local Ray instance"
+    chain: list[BaseException] = []
+    e: BaseException | None = err
+    while e is not None and e not in chain:
+        chain.append(e)
+        e = e.__cause__ or e.__context__
+    text = " ".join(str(c) for c in chain)
+    auth_words = ("AuthenticationError", "InvalidAuthToken", "Unauthenticated")
+    if any(type(c).__name__ == "AuthenticationError" for c in chain) or any(
+        w in text for w in auth_words
+    ):
+        head_token = "the head's token ('ray get-auth-token' there)"
+        if os.environ.get("RAY_AUTH_MODE", "").lower() != "token":
+            return (
+                f"{where} uses token authentication: set RAY_AUTH_MODE=token and "
+                f"RAY_AUTH_TOKEN to {head_token} (or RAY_AUTH_TOKEN_PATH to a file holding it)"
+            )
+        if "no authentication token" in text:
+            return (
+                "RAY_AUTH_MODE=token but no token is given: set RAY_AUTH_TOKEN to "
+                f"{head_token} or RAY_AUTH_TOKEN_PATH to a file holding it"
+            )
+        return (
+            f"{where} rejected the authentication token (RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH "
+            f"or ~/.ray/auth_token); use {head_token}"
+        )
+    if "version mismatch" in text.lower():
+        mismatch = next(c for c in chain if "version mismatch" in str(c).lower())
+        detail = " ".join(str(mismatch).split())
+        return f"{where} runs another Ray or Python version: {detail[:300]}"
+    first = " ".join(str(err).split()) or type(err).__name__
+    return f"cannot connect to {where}: {first[:300]}"
+
+
+class _ProgressCounter:
+    """The Ray actor that sums the progress the units report; the driver takes it."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def add(self, n: int) -> None:
+        self.count += n
+
+    def take(self) -> int:
+        n, self.count = self.count, 0
+        return n
 
 
 class _BatchedReport:
-    """Counts progress locally and sends it at most every ``interval`` seconds: each send is
-    a call to the queue actor, which shares the cores with the work."""
+    """Counts progress locally and sends it at most every ``interval`` seconds, without
+    waiting for the actor (the send must not slow the unit down)."""
 
-    def __init__(self, progress: Any, interval: float = 0.5) -> None:
-        self.progress, self.interval = progress, interval
+    def __init__(self, counter: Any, interval: float = 0.5) -> None:
+        self.counter, self.interval = counter, interval
         self.pending, self.last = 0, time.monotonic()
 
     def __call__(self, n: int) -> None:
@@ -148,19 +309,25 @@ class _BatchedReport:
         if time.monotonic() - self.last >= self.interval:
             self.flush()
 
-    def flush(self) -> None:
+    def flush(self, *, wait: bool = False) -> None:
+        """Send the pending count; ``wait``: until the actor has it (the unit's last send,
+        so the driver's final take sees every frame)."""
         if self.pending:
-            self.progress.put(self.pending)
+            ref = self.counter.add.remote(self.pending)
+            if wait:
+                import ray
+
+                ray.get(ref)
             self.pending = 0
         self.last = time.monotonic()
 
 
-def _ray_call(fn: UnitFn, unit: Any, progress: Any) -> Any:
-    report = _BatchedReport(progress)
+def _ray_call(fn: UnitFn, unit: Any, counter: Any) -> Any:
+    report = _BatchedReport(counter)
     try:
         return fn(unit, report)
     finally:
-        report.flush()
+        report.flush(wait=True)
 
 
 def make_executor(name: str, *, workers: int = 1, ray_address: str | None = None) -> Executor:

@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from bopsurg.annotate import annotate_dataset
+from bopsurg.cli.commands import help_of
 from bopsurg.plugins import load_plugin
-from bopsurg.visibility import DEFAULT_DELTA_MM
 
-HELP = "compute mask/, mask_visib/ and scene_gt_info.json of a dataset from poses and models"
+if TYPE_CHECKING:
+    from bopsurg.cli.commands import Subparsers
+
+HELP = help_of("annotate")
+
+#: Default of --delta, mm: bopsurg.visibility.DEFAULT_DELTA_MM (a test keeps them equal;
+#: importing it here would load numpy just to build the parser).
+DEFAULT_DELTA_MM = 15.0
 
 DESCRIPTION = """\
 Fill in what the BOP toolkit's calc_gt_masks.py and calc_gt_info.py compute, with the same
@@ -26,7 +33,7 @@ Scenes that already have scene_gt_info.json are left alone unless --overwrite.
 """
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: Subparsers) -> None:
     """Add the subcommand."""
     p = sub.add_parser(
         "annotate",
@@ -53,6 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Annotate and report."""
+    from bopsurg.annotate import annotate_dataset
+
     load_plugin("renderer", args.renderer)  # fail early, with a one-line hint, if missing
     report = annotate_dataset(
         args.dataset,

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from bopsurg.bop.check import check_dataset
+from bopsurg.cli.commands import help_of
 
-HELP = "validate a BOP dataset (schemas, ids, files, rotations, masks vs gt_info)"
+if TYPE_CHECKING:
+    from bopsurg.cli.commands import Subparsers
+
+HELP = help_of("check")
 
 DESCRIPTION = """\
 Validate a BOP dataset split and print one line per problem: file, field, what is wrong.
@@ -20,7 +24,7 @@ Exit code: 0 when the dataset is valid, 1 when problems were found, 2 on a usage
 """
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: Subparsers) -> None:
     """Add the subcommand."""
     p = sub.add_parser(
         "check",
@@ -40,6 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the check; returns 0 when valid, 1 when problems were found."""
+    from bopsurg.bop.check import check_dataset
+
     problems = check_dataset(
         args.dataset,
         split=args.split,

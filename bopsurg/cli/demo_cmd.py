@@ -1,4 +1,8 @@
-"""``bopsurg demo``: the main job end to end on embedded defaults, nothing to download."""
+"""``bopsurg demo``: the main job end to end on embedded defaults, nothing to download.
+
+Each step runs its command's function in this process through
+:func:`bopsurg.cli.commands.run_command`, with option values as Python values.
+"""
 
 from __future__ import annotations
 
@@ -8,13 +12,16 @@ import importlib.util
 import io
 import os
 import time
-from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
+from bopsurg.cli.commands import help_of, run_command
 from bopsurg.cli.example_cmd import spec, spec_args
 from bopsurg.errors import BopsurgError
-from bopsurg.example import write_example_dataset
 from bopsurg.plugins import available_plugins
+
+if TYPE_CHECKING:
+    from bopsurg.cli.commands import Subparsers
 
 # Seeds the shipped model never trained on: bench/bench_estimators.py records its training
 # episodes with seeds 1-4 and draws their viewpoints with seed 0 (its test set: 101-102 and 1).
@@ -22,7 +29,7 @@ from bopsurg.plugins import available_plugins
 DEMO_EPISODE_SEED = 200
 DEMO_VIEW_SEED = 2
 
-HELP = "the main job: record -> generate -> predict (shipped model) -> eval table + rerun .rrd"
+HELP = help_of("demo")
 
 DESCRIPTION = """\
 Run bopsurg end to end with nothing to download:
@@ -46,7 +53,7 @@ example dataset and its imitation results instead (core only, a few seconds).
 """
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: Subparsers) -> None:
     """Add the subcommand."""
     d = sub.add_parser(
         "demo",
@@ -82,23 +89,26 @@ def _missing_for_full_demo() -> list[str]:
     return missing
 
 
-def _run(argv: Sequence[str], *, quiet: bool = False) -> None:
+def _step(command: str, *, quiet: bool = False, **values: Any) -> None:
     """Run one bopsurg subcommand in-process (its printed report hidden when ``quiet``);
     stop the demo if it fails."""
-    from bopsurg.cli.main import build_parser
-
-    args = build_parser().parse_args(list(argv))
     with contextlib.redirect_stdout(io.StringIO()) if quiet else contextlib.nullcontext():
-        status = int(args.func(args) or 0)
+        status = run_command(command, **values)
     if status:
-        raise BopsurgError(f"demo step 'bopsurg {argv[0]}' failed (exit {status})")
+        raise BopsurgError(f"demo step 'bopsurg {command}' failed (exit {status})")
 
 
-def _eval_argv(dataset: Path, results: Path, out: Path, split: str) -> list[str]:
-    argv = ["eval", str(dataset), str(results), "--out", str(out / "eval"), "--split", split]
-    if _has("rerun"):
-        argv += ["--rerun", str(out / "eval" / "demo.rrd")]
-    return argv
+def _eval(dataset: Path, results: Path, out: Path, split: str, **values: Any) -> None:
+    rrd = str(out / "eval" / "demo.rrd") if _has("rerun") else None
+    _step(
+        "eval",
+        dataset=str(dataset),
+        results=str(results),
+        out=str(out / "eval"),
+        split=split,
+        rerun=rrd,
+        **values,
+    )
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -116,58 +126,46 @@ def run_demo(args: argparse.Namespace) -> int:
     bags = [out / "bags" / f"episode{k}.bag" for k in (1, 2)]
     print(f"[1/4] record two {args.duration:g} s suturing episodes -> {bags[0].parent}")
     for k, bag in enumerate(bags, start=1):
-        seed = str(1000 * args.seed + DEMO_EPISODE_SEED + k)
-        argv = ["record", "--out", str(bag), "--seed", seed, "--duration", f"{args.duration}"]
-        _run([*argv, "--overwrite"], quiet=True)
+        seed = 1000 * args.seed + DEMO_EPISODE_SEED + k
+        _step("record", quiet=True, out=str(bag), seed=seed, duration=args.duration, overwrite=True)
     data = out / "data"
     print(f"[2/4] generate a BOP test set ({args.replays} viewpoint replays each) -> {data}")
-    workers = str(max(1, min(2, os.cpu_count() or 1)))
-    _run(
-        [
-            "generate",
-            *map(str, bags),
-            "--out",
-            str(data),
-            "--split",
-            "test",
-            "--replays",
-            str(args.replays),
-            "--seed",
-            str(1000 * args.seed + DEMO_VIEW_SEED),
-            "--workers",
-            workers,
-        ]
+    _step(
+        "generate",
+        bags=[str(b) for b in bags],
+        out=str(data),
+        split="test",
+        replays=args.replays,
+        seed=1000 * args.seed + DEMO_VIEW_SEED,
+        workers=max(1, min(2, os.cpu_count() or 1)),
     )
     results = out / "results.csv"
     print(f"[3/4] predict with the shipped detector + pose head -> {results}")
-    _run(
-        [
-            "predict",
-            str(data),
-            "--split",
-            "test",
-            "--out",
-            str(results),
-            "--device",
-            args.device,
-            "--detections-out",
-            str(out / "detections.json"),
-        ]
+    detections = str(out / "detections.json")
+    _step(
+        "predict",
+        dataset=str(data),
+        split="test",
+        out=str(results),
+        device=args.device,
+        detections_out=detections,
     )
     print("[4/4] evaluate\n")
-    _run([*_eval_argv(data, results, out, "test"), "--detections", str(out / "detections.json")])
+    _eval(data, results, out, "test", detections=detections)
     print(f"\ndemo done in {time.perf_counter() - t0:.0f} s")
     _print_rerun_hint(out)
     return 0
 
 
 def _run_example(args: argparse.Namespace, out: Path) -> int:
+    from bopsurg.example import write_example_dataset
+
     ex = write_example_dataset(out / "data", spec(args))
     print(f"[1/3] example dataset: {ex.root}\n      results: {ex.results}")
     print("[2/3] bopsurg check")
-    _run(["check", str(ex.root), "--split", ex.split])
+    _step("check", dataset=str(ex.root), split=ex.split)
     print("[3/3] bopsurg eval\n")
-    _run(_eval_argv(ex.root, ex.results, out, ex.split))
+    _eval(ex.root, ex.results, out, ex.split)
     _print_rerun_hint(out)
     return 0
 

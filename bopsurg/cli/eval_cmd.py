@@ -6,10 +6,9 @@ import argparse
 import logging
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from bopsurg._version import __version__
-from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.targets import load_targets
+from bopsurg.cli.commands import help_of
 from bopsurg.cli.inputs import (
     add_dataset_and_results,
     add_detections_arg,
@@ -18,19 +17,15 @@ from bopsurg.cli.inputs import (
     load_detections_arg,
 )
 from bopsurg.errors import BopsurgError
-from bopsurg.evaluation.runner import (
-    INSTANCE_METRICS,
-    evaluate,
-    evaluate_distributed,
-    write_evaluation,
-)
-from bopsurg.evaluation.summary import format_table
-from bopsurg.executors import make_executor
-from bopsurg.plugins import available_plugins, load_plugin
+from bopsurg.plugins import DepthRenderer, available_plugins, load_plugin
+
+if TYPE_CHECKING:
+    from bopsurg.bop.dataset import BopDataset
+    from bopsurg.cli.commands import Subparsers
 
 log = logging.getLogger(__name__)
 
-HELP = "evaluate a BOP results CSV: errors.csv, the paper's table, BOP19 average recall"
+HELP = help_of("eval")
 
 DESCRIPTION = """\
 Evaluate 6D pose estimates (a BOP19 results CSV) on a BOP dataset split.
@@ -52,7 +47,12 @@ The BOP scores use the reference's own rules (targets, valid GTs, strict thresho
 """
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+#: Default of --metrics: every instance metric of bopsurg.evaluation.runner (a test keeps them
+#: equal; importing the runner here would make 'bopsurg eval --help' load pandas and scipy).
+METRICS = "re,te,mssd,mspd,add,adi"
+
+
+def register(sub: Subparsers) -> None:
     """Add the subcommand."""
     p = sub.add_parser(
         "eval",
@@ -81,9 +81,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--metrics",
-        default=",".join(INSTANCE_METRICS),
-        help="comma-separated metrics of errors.csv (default: all; ADD-S 'adi' is the costly "
-        "one, about 0.5 us per model vertex and estimate)",
+        default=METRICS,
+        help=f"comma-separated metrics of errors.csv (default: all, {METRICS}; ADD-S 'adi' "
+        "is the costly one, about 0.5 us per model vertex and estimate)",
     )
     p.add_argument("--vsd-delta", type=float, default=15.0, help="VSD tolerance delta, mm")
     p.add_argument(
@@ -98,7 +98,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _renderer(choice: str, dataset: BopDataset) -> object | None:
+def _renderer(choice: str, dataset: BopDataset) -> DepthRenderer | None:
     if choice == "none":
         return None
     has_depth = any((dataset.split_dir / f"{s:06d}" / "depth").is_dir() for s in dataset.scene_ids)
@@ -110,16 +110,18 @@ def _renderer(choice: str, dataset: BopDataset) -> object | None:
             log.info("AR_VSD skipped: the dataset has no depth images")
             return None
         try:
-            return load_plugin("renderer")()
+            renderer: DepthRenderer = load_plugin("renderer")()
+            return renderer
         except BopsurgError as err:
             log.warning("AR_VSD skipped: %s", err)
             return None
     if not has_depth:
         raise BopsurgError(f"VSD needs depth images; {dataset.split_dir} has no depth/ folders")
-    return load_plugin("renderer", choice)()
+    chosen: DepthRenderer = load_plugin("renderer", choice)()
+    return chosen
 
 
-def _renderer_name(renderer: object | None) -> str | None:
+def _renderer_name(renderer: DepthRenderer | None) -> str | None:
     if renderer is None:
         return None
     for name, ep in available_plugins("renderer").items():
@@ -130,6 +132,12 @@ def _renderer_name(renderer: object | None) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
+    from bopsurg._version import __version__
+    from bopsurg.bop.targets import load_targets
+    from bopsurg.evaluation.runner import evaluate, evaluate_distributed, write_evaluation
+    from bopsurg.evaluation.summary import format_table
+    from bopsurg.executors import make_executor
+
     t0 = time.perf_counter()
     executor = None
     if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
@@ -156,9 +164,7 @@ def run(args: argparse.Namespace) -> int:
         result = evaluate_distributed(
             dataset,
             est,
-            executor=make_executor(
-                args.executor, workers=args.workers, ray_address=args.ray_address
-            ),
+            executor=executor,
             targets=targets,
             renderer_name=_renderer_name(renderer),
             progress=not args.no_progress,

@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from bopsurg.example import ExampleSpec, write_example_dataset
+from bopsurg.cli.commands import help_of
 
-EXAMPLE_HELP = "write the embedded example: a needle BOP dataset and a results CSV"
+if TYPE_CHECKING:
+    from bopsurg.cli.commands import Subparsers
+    from bopsurg.example import ExampleSpec
+
+EXAMPLE_HELP = help_of("example")
+
+#: Defaults of bopsurg.example.ExampleSpec (a test keeps them equal; importing it here would
+#: load numpy, OpenCV and scipy just to build the parser).
+SPEC_DEFAULTS = {"seed": 0, "scenes": 3, "images_per_scene": 12}
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: Subparsers) -> None:
     """Add the subcommand."""
     p = sub.add_parser("example", help=EXAMPLE_HELP, description=EXAMPLE_HELP)
     p.add_argument("--out", required=True, help="output folder (created)")
@@ -19,19 +28,23 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def spec_args(p: argparse.ArgumentParser) -> None:
     """``--seed --scenes --images`` of the example."""
-    defaults = ExampleSpec()
-    p.add_argument("--seed", type=int, default=defaults.seed, help="random seed (default: 0)")
-    p.add_argument("--scenes", type=int, default=defaults.scenes, help="number of scenes")
-    p.add_argument("--images", type=int, default=defaults.images_per_scene, help="images per scene")
+    d = SPEC_DEFAULTS
+    p.add_argument("--seed", type=int, default=d["seed"], help="random seed (default: 0)")
+    p.add_argument("--scenes", type=int, default=d["scenes"], help="number of scenes")
+    p.add_argument("--images", type=int, default=d["images_per_scene"], help="images per scene")
 
 
 def spec(args: argparse.Namespace) -> ExampleSpec:
     """The :class:`ExampleSpec` the arguments describe."""
+    from bopsurg.example import ExampleSpec
+
     return ExampleSpec(seed=args.seed, scenes=args.scenes, images_per_scene=args.images)
 
 
 def run_example(args: argparse.Namespace) -> int:
     """Write the example and say where it is."""
+    from bopsurg.example import write_example_dataset
+
     ex = write_example_dataset(args.out, spec(args))
     print(f"dataset: {ex.root} (split {ex.split})\nresults: {ex.results}")
     return 0

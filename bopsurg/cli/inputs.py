@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.results import PoseEstimates, check_results_against_dataset, load_results
+if TYPE_CHECKING:  # imported in the functions: building the parser stays light
+    from bopsurg.bop.dataset import BopDataset
+    from bopsurg.bop.results import PoseEstimates
+    from bopsurg.estimation import Detections
 
 
 def add_dataset_and_results(p: argparse.ArgumentParser) -> None:
@@ -19,6 +22,9 @@ def add_dataset_and_results(p: argparse.ArgumentParser) -> None:
 
 def load_dataset_and_results(args: argparse.Namespace) -> tuple[BopDataset, PoseEstimates]:
     """Open the dataset, load the results and check them against it (one-line errors)."""
+    from bopsurg.bop.dataset import BopDataset
+    from bopsurg.bop.results import check_results_against_dataset, load_results
+
     dataset = BopDataset(args.dataset, args.split, split_type=args.split_type)
     results_path = Path(args.results)
     est = load_results(results_path)
@@ -56,7 +62,7 @@ def add_detections_arg(p: argparse.ArgumentParser) -> None:
     )
 
 
-def load_detections_arg(args: argparse.Namespace):  # -> dict[(scene, im), Detections] | None
+def load_detections_arg(args: argparse.Namespace) -> dict[tuple[int, int], Detections] | None:
     """The boxes of ``--detections``, or None."""
     if not getattr(args, "detections", None):
         return None

@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import argparse
 import logging
+from typing import TYPE_CHECKING
 
-from bopsurg.bop.dataset import BopDataset
+from bopsurg.cli.commands import help_of
 from bopsurg.errors import BopsurgError
+
+if TYPE_CHECKING:
+    from bopsurg.cli.commands import Subparsers
 
 log = logging.getLogger(__name__)
 
-HELP = "estimate poses in a dataset split with an estimator plugin: a BOP19 results CSV"
+HELP = help_of("predict")
 
 DESCRIPTION = """\
 Estimate the 6D poses of the objects in every target image of a BOP dataset split and
@@ -45,7 +49,7 @@ def _option(text: str) -> tuple[str, str]:
     return key, value
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: Subparsers) -> None:
     """Add the subcommand."""
     p = sub.add_parser(
         "predict",
@@ -91,6 +95,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Execute the subcommand."""
+    from bopsurg.bop.dataset import BopDataset
     from bopsurg.bop.detections import load_detections
     from bopsurg.estimation import estimator_report, load_estimator
     from bopsurg.prediction import predict_dataset

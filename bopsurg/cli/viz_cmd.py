@@ -5,18 +5,22 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from typing import TYPE_CHECKING
 
+from bopsurg.cli.commands import help_of
 from bopsurg.cli.inputs import (
     add_dataset_and_results,
     add_detections_arg,
     load_dataset_and_results,
     load_detections_arg,
 )
-from bopsurg.evaluation.runner import evaluate
+
+if TYPE_CHECKING:
+    from bopsurg.cli.commands import Subparsers
 
 log = logging.getLogger(__name__)
 
-HELP = "evaluate a BOP results CSV and write a rerun .rrd for visual error analysis"
+HELP = help_of("viz")
 
 DESCRIPTION = """\
 Evaluate 6D pose estimates on a BOP dataset split (as 'bopsurg eval', without VSD) and write
@@ -24,12 +28,13 @@ a rerun recording: per image the RGB with GT (blue) and estimated (green) silhou
 camera and needle meshes, per-frame RE/TE/MSSD series, histograms, the paper's table and the
 list of the worst frames (largest MSSD). Needs bopsurg[rerun]; open with 'rerun FILE.rrd'.
 
-Images go for every frame up to 500 frames; beyond that (or past --max-frames) for the worst
-frames plus a uniform sample, while the scalar series cover every frame.
+Images go for every frame up to 100 frames; beyond that for the 100 worst frames plus 100
+spread uniformly over the others (with --max-frames N: N/2 worst, the rest spread), while the
+scalar series cover every frame.
 """
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: Subparsers) -> None:
     """Add the subcommand."""
     p = sub.add_parser(
         "viz",
@@ -59,6 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate, then log the recording."""
+    from bopsurg.evaluation.runner import evaluate
     from bopsurg.viz import log_evaluation
 
     t0 = time.perf_counter()

@@ -120,3 +120,93 @@ def test_ray_executor_without_ray_is_a_one_line_hint(example, tmp_path, capsys, 
     args = ["-q", "eval", str(example.root), str(example.results), "--out", str(tmp_path)]
     assert main([*args, "--executor", "ray"]) == 2
     assert "pip install 'bopsurg[ray]'" in _one_line_error(capsys)
+
+
+def test_help_loads_no_command_module():
+    """`bopsurg --help` and `bopsurg eval --help` import neither torch nor the plugins, nor
+    even pandas or scipy: building the parser loads only the chosen command's module."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from bopsurg.cli.main import main\n"
+        "for argv in (['--help'], ['eval', '--help'], ['check', '--help']):\n"
+        "    try:\n"
+        "        main(argv)\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "heavy = ('torch', 'pybullet', 'rosbags', 'rerun', 'ray', 'pandas', 'scipy', 'cv2',\n"
+        "         'bopsurg.generators', 'bopsurg.models')\n"
+        "print('LOADED', ','.join(m for m in heavy if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "usage: bopsurg" in out.stdout
+    assert out.stdout.strip().splitlines()[-1] == "LOADED"
+
+
+def test_literal_defaults_and_help_lines_match_the_code():
+    """The CLI keeps a few values as literals so that building the parser stays light; they
+    must say what the code does."""
+    import dataclasses
+    import importlib
+
+    from bopsurg.cli import annotate_cmd, eval_cmd, example_cmd, viz_cmd
+    from bopsurg.cli.commands import PLUGIN_HELP
+    from bopsurg.evaluation.runner import INSTANCE_METRICS
+    from bopsurg.example import ExampleSpec
+    from bopsurg.plugins import available_plugins
+    from bopsurg.visibility import DEFAULT_DELTA_MM
+    from bopsurg.viz.rerun_log import DEFAULT_IMAGE_FRAMES
+
+    assert ",".join(INSTANCE_METRICS) == eval_cmd.METRICS
+    assert annotate_cmd.DEFAULT_DELTA_MM == DEFAULT_DELTA_MM
+    fields = {f.name: f.default for f in dataclasses.fields(ExampleSpec)}
+    assert {k: fields[k] for k in example_cmd.SPEC_DEFAULTS} == example_cmd.SPEC_DEFAULTS
+    assert f"up to {DEFAULT_IMAGE_FRAMES} frames" in viz_cmd.DESCRIPTION
+    assert f"the {DEFAULT_IMAGE_FRAMES} worst" in viz_cmd.DESCRIPTION
+    commands = available_plugins("command")
+    for name, line in PLUGIN_HELP.items():
+        try:
+            module = importlib.import_module(commands[name].value)
+        except ImportError:  # that extra is not installed here
+            continue
+        assert line == module.HELP, name
+
+
+def test_plugin_command_with_missing_dependency_is_a_one_line_hint(capsys, monkeypatch):
+    from importlib.metadata import EntryPoint
+
+    from bopsurg.cli import commands
+
+    broken = EntryPoint(name="broken", value="bopsurg_no_such_module", group="bopsurg.commands")
+    real = commands.available_plugins
+
+    def plugins(kind: str):
+        return {**real(kind), "broken": broken} if kind == "command" else real(kind)
+
+    monkeypatch.setattr(commands, "available_plugins", plugins)
+    # a built-in plugin whose extra is missing is marked in the listing, nothing imported
+    monkeypatch.setitem(commands.EXTRA_MODULES, "sim", ("bopsurg_no_such_module",))
+    monkeypatch.setenv("COLUMNS", "250")  # one help line per command
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    listing = capsys.readouterr().out
+    assert "broken" in listing
+    assert "pip install 'bopsurg[sim]'" in listing
+    assert main(["broken", "--any", "argument"]) == 2
+    err = _one_line_error(capsys)
+    assert "'broken' is unavailable" in err
+    assert "pip install 'bopsurg[all]'" in err
+
+
+def test_run_command_rejects_unknown_options(tmp_path):
+    from bopsurg.cli.commands import run_command
+    from bopsurg.errors import BopsurgError
+
+    with pytest.raises(BopsurgError, match="no option"):
+        run_command("example", out=str(tmp_path), scene=2)
+    with pytest.raises(BopsurgError, match="needs"):
+        run_command("example", scenes=1)
+    assert run_command("example", out=str(tmp_path), scenes=1, images=2) == 0
+    assert any(tmp_path.rglob("camera.json"))
