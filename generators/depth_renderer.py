@@ -33,12 +33,12 @@ from bopsurg.bop.models import ObjectModel
 from bopsurg.generators.pybullet_backend import (
     PIXEL_OFFSETS,
     depth_buffer_to_mm,
-    hull_points,
     projection_matrix,
     render_window,
     view_matrix,
     write_obj,
 )
+from bopsurg.metrics.point_subsets import hull_vertices
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ class PyBulletDepthRenderer:
         center = 0.5 * (lo + hi)
         radius = float(np.linalg.norm(model.pts - center, axis=1).max())
         log.debug("uploaded a model: %d vertices, %d faces", model.n_vertices, len(model.faces))
-        return _Mesh(body=body, hull=hull_points(model) * 1e-3, center=center, radius=radius)
+        return _Mesh(body=body, hull=hull_vertices(model.pts) * 1e-3, center=center, radius=radius)
 
     def render_depth(
         self,

@@ -41,13 +41,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.bop.models import ObjectModel
+from bopsurg.generators.backend import ARMS
 from bopsurg.generators.kinematics import SceneLayout, psm_link_frames, rot_x
 from bopsurg.needle import NeedleSpec, needle_mesh
 
 F64 = NDArray[np.float64]
 
 #: Arms, in annotation order; index i is ``SceneLayout.psm_base(i)``.
-ARMS = ("psm1", "psm2")
 #: Instrument parts per arm; the annotated ones (with ``annotate_instruments``) are marked.
 INSTRUMENT_PARTS = ("shaft", "wrist", "yaw", "jaw1", "jaw2")
 ANNOTATED_INSTRUMENT_PARTS = ("wrist", "jaw1", "jaw2")

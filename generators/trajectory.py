@@ -1,7 +1,7 @@
 """Synthetic suturing episodes: two dVRK PSMs pass a curved needle through tissue.
 
 :func:`synthesize_suturing` plays an operator through one or two *throws* of a running
-suture and returns a :class:`~bopsurg.generators.bags.Recording` (joints of both PSMs, jaws,
+suture and returns a :class:`~bopsurg.generators.recording.Recording` (joints of both PSMs, jaws,
 ECM joints and the needle pose at a fixed rate), ready for
 :func:`~bopsurg.generators.bags.write_bag`. Everything random comes from
 ``numpy.random.default_rng(seed)``: the same seed gives the same arrays.
@@ -41,7 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from bopsurg._version import __version__
 from bopsurg.errors import InputError
-from bopsurg.generators.bags import Recording
+from bopsurg.generators.backend import ARMS, DEFAULT_ECM_JOINTS
 from bopsurg.generators.ik import psm_ik_solve
 from bopsurg.generators.kinematics import (
     DEFAULT_LAYOUT,
@@ -54,17 +54,15 @@ from bopsurg.generators.kinematics import (
     psm_tip_pose,
     rot_z,
 )
+from bopsurg.generators.recording import Recording
 from bopsurg.needle import NeedleSpec
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
-ARMS = ("psm1", "psm2")
 #: A jaw at or below this opening (rad) holds the needle (the AMBF simulator's rule).
 GRASP_JAW_THRESHOLD = 0.2
-#: Base pose of the endoscope joints: yaw, pitch (rad), insertion (m), roll (rad).
-ECM_BASE_JOINTS = np.zeros(4)
 #: Physiological tremor band (Hz) and RMS amplitude range (m).
 TREMOR_HZ = (8.0, 12.0)
 TREMOR_RMS = (0.05e-3, 0.1e-3)
@@ -674,7 +672,7 @@ def _tremor(rng: np.random.Generator, times: F64) -> F64:
 
 def _ecm_track(rng: np.random.Generator, duration: float) -> _Track:
     """ECM joints: the base pose, adjusted by the operator now and then (0–2 times)."""
-    base = ECM_BASE_JOINTS + rng.uniform(-1, 1, 4) * np.array([0.02, 0.02, 0.002, 0.03])
+    base = DEFAULT_ECM_JOINTS + rng.uniform(-1, 1, 4) * np.array([0.02, 0.02, 0.002, 0.03])
     track = _Track(base)
     n = int(rng.integers(0, 3))
     starts = np.sort(rng.uniform(0.1, 0.85, n)) * duration

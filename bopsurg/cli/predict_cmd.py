@@ -6,6 +6,7 @@ import argparse
 import logging
 
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.cli.inputs import key_value
 from bopsurg.errors import BopsurgError
 
 log = logging.getLogger(__name__)
@@ -38,13 +39,6 @@ examples:
 """
 
 
-def _option(text: str) -> tuple[str, str]:
-    key, sep, value = text.partition("=")
-    if not sep or not key:
-        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
-    return key, value
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the subcommand."""
     p = sub.add_parser(
@@ -66,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--option",
-        type=_option,
+        type=key_value,
         action="append",
         default=[],
         metavar="KEY=VALUE",
