@@ -123,6 +123,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--backend", default=d.backend, help="render backend plugin (default: pybullet)")
     p.add_argument(
+        "--amodal-renderer",
+        default=d.renderer,
+        metavar="NAME",
+        help="depth renderer plugin for each object alone on the 3x canvas, the one 'bopsurg "
+        "annotate' uses (default: pybullet), or 'backend' for the render backend's own",
+    )
+    p.add_argument(
         "--backend-option",
         type=key_value,
         action="append",
@@ -214,6 +221,7 @@ def run(args: argparse.Namespace) -> int:
         topic_map=args.topic_map,
         backend=args.backend,
         backend_config=_backend_config(args),
+        renderer=None if args.amodal_renderer == "backend" else args.amodal_renderer,
         width=args.width,
         height=args.height,
         K=_intrinsics(args),
