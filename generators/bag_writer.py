@@ -72,6 +72,17 @@ class _MessageFactory:
             return header_type(seq=seq, stamp=stamp, frame_id=frame_id)
         return header_type(stamp=stamp, frame_id=frame_id)
 
+    def encode(self, src: Source, value: Any, seq: int, stamp_ns: int) -> Any:
+        """The message of one sample (recording units, divided by the source's scale)."""
+        if src.stream == "meta":
+            return self.t[src.msgtype](data=str(value))
+        scale = np.asarray(src.scale)
+        if src.stream == "needle_pose":
+            T = value.copy()
+            T[:3, 3] /= scale[0]
+            return self.build(src, T, seq, stamp_ns)
+        return self.build(src, np.atleast_1d(value) / scale, seq, stamp_ns)
+
     def build(self, src: Source, value: F64, seq: int, stamp_ns: int) -> Any:
         t = self.t
         if src.msgtype == "sensor_msgs/msg/JointState":
@@ -177,26 +188,13 @@ def write_bag(
     tmp = tmp_dir / target.name  # the bag keeps its final name inside (ROS2 names files by it)
     counts: dict[str, int] = {}
     try:
-        if format == "ros1":
-            writer: Any = Writer1(tmp)
-        else:
-            plugin = StoragePlugin.MCAP if format == "mcap" else StoragePlugin.SQLITE3
-            writer = Writer2(tmp, version=9, storage_plugin=plugin)
-        with writer:
+        with _open_writer(tmp, format) as writer:
             messages = []  # (stamp_ns, order, connection, raw)
             for order, (src, times, values) in enumerate(plan):
                 conn = writer.add_connection(src.topic, src.msgtype, typestore=ts)
-                scale = np.asarray(src.scale)
                 for i, (t, v) in enumerate(zip(times, values, strict=True)):
                     stamp = origin + round(float(t) * 1e9)
-                    if src.stream == "meta":
-                        msg = ts.types[src.msgtype](data=str(v))
-                    elif src.stream == "needle_pose":
-                        v = v.copy()
-                        v[:3, 3] /= scale[0]
-                        msg = factory.build(src, v, i, stamp)
-                    else:
-                        msg = factory.build(src, np.atleast_1d(v) / scale, i, stamp)
+                    msg = factory.encode(src, v, i, stamp)
                     messages.append((stamp, order, conn, serialize(msg, src.msgtype)))
                 counts[src.topic] = len(times)
             messages.sort(key=lambda m: (m[0], m[1]))  # bags are read in time order
@@ -207,6 +205,14 @@ def write_bag(
         shutil.rmtree(tmp_dir, ignore_errors=True)
     log.info("wrote %s (%s, %d topics)", target, format, len(counts))
     return counts
+
+
+def _open_writer(path: Path, format: BagFormat) -> Any:
+    """A rosbags writer of the format (not yet opened)."""
+    if format == "ros1":
+        return Writer1(path)
+    plugin = StoragePlugin.MCAP if format == "mcap" else StoragePlugin.SQLITE3
+    return Writer2(path, version=9, storage_plugin=plugin)
 
 
 def _write_plan(recording: Recording, tmap: TopicMap) -> list[tuple[Source, Any, Any]]:

@@ -6,12 +6,15 @@ import argparse
 import logging
 import math
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bopsurg.cli.inputs import add_executor_args, key_value
 from bopsurg.errors import InputError
 from bopsurg.executors import make_executor
 from bopsurg.geometry import intrinsics_from_fov
+
+if TYPE_CHECKING:
+    from bopsurg.generators.replay import GenerateSettings
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +80,25 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--delta", type=float, default=d.delta_mm, help="visibility tolerance, mm (default: 1)"
     )
     p.add_argument("--topic-map", default=d.topic_map, help="topic map: crtk, ambf or a TOML file")
+    _add_camera_args(p, d)
+    _add_needle_args(p)
+    p.add_argument(
+        "--rgb-format", choices=("png", "jpg"), default=d.rgb_format, help="rgb file format"
+    )
+    p.add_argument("--stereo", action="store_true", help="also render the right camera")
+    p.add_argument(
+        "--annotate-instruments",
+        action="store_true",
+        help="annotate instrument parts as further objects (obj_id 2, 3, ...)",
+    )
+    _add_backend_args(p, d)
+    add_executor_args(p, unit="replay")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.set_defaults(func=run)
+
+
+def _add_camera_args(p: argparse.ArgumentParser, d: GenerateSettings) -> None:
+    """``--width --height --fov --K``."""
     p.add_argument("--width", type=int, default=d.width, help="image width, px (default: 640)")
     p.add_argument("--height", type=int, default=d.height, help="image height, px (default: 480)")
     p.add_argument(
@@ -92,6 +114,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FX,FY,CX,CY",
         help="explicit intrinsics in px (overrides --fov)",
     )
+
+
+def _add_needle_args(p: argparse.ArgumentParser) -> None:
+    """``--needle-arc --needle-radius --needle-wire``."""
     p.add_argument(
         "--needle-arc",
         type=float,
@@ -106,15 +132,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--needle-wire", type=float, default=None, metavar="MM", help="wire diameter, mm"
     )
-    p.add_argument(
-        "--rgb-format", choices=("png", "jpg"), default=d.rgb_format, help="rgb file format"
-    )
-    p.add_argument("--stereo", action="store_true", help="also render the right camera")
-    p.add_argument(
-        "--annotate-instruments",
-        action="store_true",
-        help="annotate instrument parts as further objects (obj_id 2, 3, ...)",
-    )
+
+
+def _add_backend_args(p: argparse.ArgumentParser, d: GenerateSettings) -> None:
+    """``--backend --backend-option --renderer --amodal-renderer``."""
     p.add_argument(
         "--renderer",
         choices=("tiny", "egl"),
@@ -137,9 +158,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="option of the render backend (repeatable; see above for PyBullet's)",
     )
-    add_executor_args(p, unit="replay")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    p.set_defaults(func=run)
 
 
 def _intrinsics(args: argparse.Namespace) -> tuple[tuple[float, float, float], ...]:
