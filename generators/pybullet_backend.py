@@ -53,11 +53,11 @@ import os
 import sys
 import tempfile
 import weakref
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Self
 
 import cv2
 import numpy as np
@@ -185,6 +185,71 @@ def render_window(
     if u0 >= u1 or v0 >= v1:
         return None
     return u0, v0, u1, v1
+
+
+#: Renders depth and segmentation buffers of a window: ``(K of the window, width, height)``.
+WindowRender = Callable[[F64, int, int], tuple[NDArray[Any], NDArray[Any]]]
+
+
+def render_in_window(
+    points: F64,
+    T_cam_obj: F64,
+    K: F64,
+    size: tuple[int, int],
+    clip: tuple[float, float],
+    render: WindowRender,
+) -> F64:
+    """Depth (mm) of one object on a canvas, rendering only the window it can cover.
+
+    Args:
+        points: (N, 3) points whose convex hull contains the object (its frame), m.
+        T_cam_obj: Object pose in the camera, m.
+        K: Intrinsics of the canvas, px.
+        size: (width, height) of the canvas, px.
+        clip: (near, far) clipping distances of the render, m.
+        render: Renders the window's buffers; called once, only if the object can be seen.
+
+    Returns:
+        (height, width) z-depth, mm, 0 where the object is absent.
+    """
+    width, height = size
+    near, far = clip
+    out = np.zeros((height, width))
+    window = render_window(points, T_cam_obj, K, width, height, near)
+    if window is None:
+        return out
+    u0, v0, u1, v1 = window
+    Kw = K.copy()
+    Kw[0, 2] -= u0
+    Kw[1, 2] -= v0
+    w, h = u1 - u0, v1 - v0
+    depth, seg = render(Kw, w, h)
+    out[v0:v1, u0:u1] = depth_buffer_to_mm(
+        np.asarray(depth).reshape(h, w), near, far, np.asarray(seg).reshape(h, w)
+    )
+    return out
+
+
+class ClosesOnExit:
+    """``with`` support and closing on garbage collection, for classes with ``close()``."""
+
+    def close(self) -> None:
+        """Release resources (idempotent)."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
 
 
 @contextlib.contextmanager
@@ -345,7 +410,7 @@ def parse_options(options: Mapping[str, Any]) -> PyBulletOptions:
     return PyBulletOptions(renderer, texture_seed, light_distance)
 
 
-class PyBulletBackend:
+class PyBulletBackend(ClosesOnExit):
     """The built-in rendering backend (pybullet, headless, one DIRECT client per instance).
 
     Usage::
@@ -380,21 +445,6 @@ class PyBulletBackend:
         self._jaws: dict[str, float] = default_state().jaws
 
     # ------------------------------------------------------------------- lifetime
-
-    def __enter__(self) -> PyBulletBackend:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        with contextlib.suppress(Exception):
-            self.close()
 
     def close(self) -> None:
         """Disconnect the pybullet clients (idempotent)."""
@@ -638,28 +688,19 @@ class PyBulletBackend:
         if name not in assets.annotated:
             raise KeyError(f"{name!r} is not annotated; annotated: {list(assets.annotated)}")
         K = np.asarray(camera.K, dtype=np.float64)
-        out = np.zeros((camera.height, camera.width))
         T_cam_obj = np.linalg.solve(camera.T_world_cam, self._poses[name])
-        window = render_window(
-            self._hulls[name], T_cam_obj, K, camera.width, camera.height, camera.near
+
+        def render(Kw: F64, w: int, h: int) -> tuple[NDArray[Any], NDArray[Any]]:
+            return self._render_solo(name, self._camera_args(camera, Kw, w, h, "tiny"))
+
+        return render_in_window(
+            self._hulls[name],
+            T_cam_obj,
+            K,
+            (camera.width, camera.height),
+            (camera.near, camera.far),
+            render,
         )
-        if window is None:
-            return out
-        u0, v0, u1, v1 = window
-        Kw = K.copy()
-        Kw[0, 2] -= u0
-        Kw[1, 2] -= v0
-        depth, seg = self._render_solo(
-            name, self._camera_args(camera, Kw, u1 - u0, v1 - v0, "tiny")
-        )
-        shape = (v1 - v0, u1 - u0)
-        out[v0:v1, u0:u1] = depth_buffer_to_mm(
-            np.asarray(depth).reshape(shape),
-            camera.near,
-            camera.far,
-            np.asarray(seg).reshape(shape),
-        )
-        return out
 
     def _render_solo(self, name: str, args: dict[str, Any]) -> tuple[NDArray[Any], NDArray[Any]]:
         """Depth and segmentation buffers of the object in the solo client (TinyRenderer)."""
@@ -690,10 +731,13 @@ class PyBulletBackend:
 __all__ = [
     "ARMS",
     "OPTION_KEYS",
+    "ClosesOnExit",
     "PyBulletBackend",
     "PyBulletOptions",
+    "WindowRender",
     "depth_buffer_to_mm",
     "projection_matrix",
+    "render_in_window",
     "render_window",
     "view_matrix",
 ]
