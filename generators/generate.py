@@ -14,6 +14,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
@@ -138,7 +139,7 @@ def _write_dataset_files(
             )
     backend = make_backend(settings)
     try:
-        infos = {}
+        infos: dict[int, dict[str, Any]] = {}
         for name, obj_id in backend.annotated_objects():
             model = backend.object_model(name)
             save_ply(out / "models" / f"obj_{obj_id:06d}.ply", model)

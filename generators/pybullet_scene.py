@@ -132,7 +132,9 @@ class SceneAssets:
 
 def _flat_polygons(polygons: list[F64]) -> ObjectModel:
     """Flat-shaded mesh of convex planar polygons (each (n, 3), counter-clockwise from outside)."""
-    pts, faces, normals = [], [], []
+    pts: list[F64] = []
+    faces: list[list[int]] = []
+    normals: list[F64] = []
     base = 0
     for poly in polygons:
         poly = np.asarray(poly, dtype=np.float64)

@@ -586,7 +586,8 @@ def _grasp_offsets(
     setup: _Setup, layout: SceneLayout, needle: NeedleSpec, check_reach: bool
 ) -> tuple[list[F64], list[F64]]:
     """PSM1's and PSM2's grasp offsets per throw, spun so each hold's route stays reachable."""
-    T_tn1, T_tn2 = [], []
+    T_tn1: list[F64] = []
+    T_tn2: list[F64] = []
     home1, home2 = setup.home["psm1"], setup.home["psm2"]
     for k, th in enumerate(setup.throws):
         if not check_reach:
