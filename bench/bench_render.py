@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bopsurg.generators.backend import CameraSpec, LightSpec, SceneState
+from bopsurg.generators.backend import CameraSpec, LightSpec, SceneSpec, SceneState
 from bopsurg.generators.depth_renderer import PyBulletDepthRenderer
 from bopsurg.generators.kinematics import ecm_camera_pose, pose, rot_z
 from bopsurg.generators.pybullet_backend import PyBulletBackend
@@ -85,10 +85,10 @@ def timed(fn: Callable[[], object]) -> float:
 
 
 def bench_backend(renderer: str, data: list, instruments: bool) -> dict[str, float] | None:
-    backend = PyBulletBackend()
+    backend = PyBulletBackend({"renderer": renderer})
     t0 = time.perf_counter()
     try:
-        backend.load_scene({"renderer": renderer, "annotate_instruments": instruments})
+        backend.load_scene(SceneSpec(annotate_instruments=instruments))
     except RuntimeError as err:
         print(f"{renderer}: not available ({err})")
         return None

@@ -33,7 +33,7 @@ from bopsurg.bop.scene import GtInfo, save_scene_gt_info
 from bopsurg.bop.targets import enumerate_targets, save_targets
 from bopsurg.errors import DatasetError
 from bopsurg.plugins import DepthRenderer
-from bopsurg.visibility import DEFAULT_DELTA_MM, instance_visibility
+from bopsurg.visibility import DEFAULT_DELTA_MM, instance_visibility, large_canvas
 
 log = logging.getLogger(__name__)
 
@@ -108,13 +108,6 @@ def _validate(dataset: BopDataset) -> tuple[tuple[int, int], bool]:
     return (width, height), depth_flags == {True}
 
 
-def _large_K(K: np.ndarray, width: int, height: int) -> np.ndarray:
-    Kl = np.array(K, dtype=np.float64)
-    Kl[0, 2] += width
-    Kl[1, 2] += height
-    return Kl
-
-
 def annotate_scene(
     dataset: BopDataset,
     scene: BopScene,
@@ -133,11 +126,8 @@ def annotate_scene(
     for im_id in sorted(scene.gt):
         gts = scene.gt[im_id]
         cam = scene.camera[im_id]
-        Kl = _large_K(cam.K, width, height)
-        large = [
-            renderer.render_depth(dataset.model(g.obj_id), g.R, g.t, Kl, 3 * width, 3 * height)
-            for g in gts
-        ]
+        canvas = large_canvas(cam.K, width, height)
+        large = [renderer.render_depth(dataset.model(g.obj_id), g.R, g.t, *canvas) for g in gts]
         if with_depth:
             assert cam.depth_scale is not None
             depth_test = load_depth(scene.depth_path(im_id)) * cam.depth_scale

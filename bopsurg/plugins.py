@@ -29,10 +29,12 @@ log = logging.getLogger(__name__)
 #: Entry-point groups, by plugin kind.
 GROUPS: dict[str, str] = {
     "renderer": "bopsurg.renderers",
-    "generator": "bopsurg.generators",
+    "backend": "bopsurg.render_backends",
     "estimator": "bopsurg.estimators",
     "command": "bopsurg.commands",
 }
+#: Former group names still searched (with a deprecation warning), by current group.
+DEPRECATED_GROUPS: dict[str, str] = {"bopsurg.render_backends": "bopsurg.generators"}
 
 
 @runtime_checkable
@@ -61,12 +63,28 @@ def available_plugins(kind: str) -> dict[str, EntryPoint]:
     """Installed plugins of one kind, by name.
 
     Args:
-        kind: One of :data:`GROUPS` (``"renderer"``, ``"generator"``, ``"estimator"``,
+        kind: One of :data:`GROUPS` (``"renderer"``, ``"backend"``, ``"estimator"``,
             ``"command"``: a module with ``register(subparsers)`` adding a CLI subcommand).
+            Plugins registered under a former group name (:data:`DEPRECATED_GROUPS`) are
+            found too, with a warning; the current group wins on a name clash.
     """
     if kind not in GROUPS:
         raise BopsurgError(f"unknown plugin kind {kind!r}; expected one of {sorted(GROUPS)}")
-    return {ep.name: ep for ep in entry_points(group=GROUPS[kind])}
+    group = GROUPS[kind]
+    found: dict[str, EntryPoint] = {}
+    old = DEPRECATED_GROUPS.get(group)
+    for ep in entry_points(group=old) if old else ():
+        log.warning(
+            "plugin %r (%s) is registered under the deprecated entry-point group %r; "
+            "register it under %r",
+            ep.name,
+            ep.value,
+            old,
+            group,
+        )
+        found[ep.name] = ep
+    found.update({ep.name: ep for ep in entry_points(group=group)})
+    return found
 
 
 def load_plugin(kind: str, name: str | None = None) -> Any:

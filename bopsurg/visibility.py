@@ -69,6 +69,25 @@ def bbox_from_mask(mask: ArrayLike, offset: tuple[int, int] = (0, 0)) -> tuple[i
     return (x0, y0, x1 - x0, y1 - y0)
 
 
+def large_canvas(K: ArrayLike, width: int, height: int) -> tuple[NDArray[np.float64], int, int]:
+    """BOP's 3× canvas of an image: the camera that also sees what the image truncates.
+
+    The amodal silhouettes of :func:`instance_visibility` are rendered on it, so that parts
+    of an object outside the image count in ``px_count_all``; the image is its centre.
+
+    Args:
+        K: (3, 3) camera matrix of the image, px.
+        width, height: Image size, px.
+
+    Returns:
+        (K with the principal point shifted by (width, height), 3 width, 3 height).
+    """
+    K_large = np.array(K, dtype=np.float64)
+    K_large[0, 2] += width
+    K_large[1, 2] += height
+    return K_large, 3 * width, 3 * height
+
+
 def visib_fract(px_count_visib: int, px_count_all: int) -> float:
     """Visible fraction of the projected amodal silhouette (0 when nothing projects)."""
     return float(px_count_visib) / float(px_count_all) if px_count_all > 0 else 0.0

@@ -1,5 +1,6 @@
 """Data generators (plugins): record trajectories into rosbags and replay them into BOP datasets.
 
 Generators import the core (:mod:`bopsurg`), never the reverse; they register under the
-``bopsurg.generators`` entry-point group.
+``bopsurg.commands`` (``record``, ``generate``), ``bopsurg.render_backends`` (PyBullet) and
+``bopsurg.renderers`` (depth) entry-point groups.
 """

@@ -1,8 +1,12 @@
-"""The generator interface: what a rendering backend provides to replay and BOP writing.
+"""The generator interface: what a render backend provides to replay and BOP writing.
 
 Replay, viewpoint sampling and BOP writing (``bopsurg.generators.replay`` and friends) only
 talk to a :class:`RenderBackend`; PyBullet is the default backend, registered under the
-``bopsurg.generators`` entry-point group like any third-party one would be.
+``bopsurg.render_backends`` entry-point group like any third-party one would be. The group's
+entry is a :data:`BackendFactory`: called with the backend's own options (``bopsurg generate
+--backend-option KEY=VALUE``, strings), it returns a backend, whose
+:meth:`RenderBackend.load_scene` then receives the backend-independent :class:`SceneSpec`.
+This module also holds the one default scene state (:func:`default_state`).
 
 Units: the scene state and camera poses are in metres and radians (ROS / CRTK SI), images in
 pixels; depth comes back in **millimetres** (BOP), 0 where nothing was hit. Camera frames
@@ -11,13 +15,21 @@ use OpenCV axes (x right, y down, z forward).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
+from bopsurg.bop.models import ObjectModel
+from bopsurg.generators.kinematics import DEFAULT_LAYOUT, SceneLayout
+from bopsurg.needle import NeedleSpec
+
 F64 = NDArray[np.float64]
+
+#: The patient-side arms of the scene.
+ARMS = ("psm1", "psm2")
 
 #: Names of the annotated objects a backend must know, with their BOP obj_id.
 #: The needle is object 1; instrument parts are optional further objects.
@@ -40,6 +52,77 @@ class SceneState:
     jaws: dict[str, float]
     ecm_joints: F64
     needle_pose: F64
+
+
+#: The default scene state, for streams a recording lacks and for a backend before its first
+#: :meth:`RenderBackend.set_state`. A parked PSM: shaft straight along its base −Z, 5 cm
+#: inserted (the tip ~28 mm below the RCM, far above the tissue); jaws closed.
+PARKED_PSM_JOINTS = np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0])
+PARKED_JAW = 0.0
+#: The endoscope at its base pose (looking at the workspace centre).
+DEFAULT_ECM_JOINTS = np.zeros(4)
+#: The needle lying flat on the tissue at the world origin (model +Z up; 0.36 mm = wire radius).
+DEFAULT_NEEDLE_POSE = np.array(
+    [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.36e-3], [0.0, 0.0, 0.0, 1.0]]
+)
+
+
+def default_state() -> SceneState:
+    """Both arms parked, the endoscope at its base pose, the needle on the tissue (copies)."""
+    return SceneState(
+        psm_joints={arm: PARKED_PSM_JOINTS.copy() for arm in ARMS},
+        jaws=dict.fromkeys(ARMS, PARKED_JAW),
+        ecm_joints=DEFAULT_ECM_JOINTS.copy(),
+        needle_pose=DEFAULT_NEEDLE_POSE.copy(),
+    )
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """What is in the scene, independent of the backend that renders it.
+
+    Attributes:
+        needle: Needle geometry (mm, degrees); a backend builds the needle model from it.
+        annotate_instruments: Also annotate the instruments' wrists and jaws (obj_ids 2..).
+        layout: Where the arms and the endoscope stand (m).
+    """
+
+    needle: NeedleSpec = field(default_factory=NeedleSpec)
+    annotate_instruments: bool = False
+    layout: SceneLayout = DEFAULT_LAYOUT
+
+
+#: ``bopsurg generate`` settings keys that describe the scene (the rest are backend options).
+SCENE_KEYS = ("needle", "annotate_instruments", "layout")
+
+
+def split_backend_config(config: Mapping[str, Any]) -> tuple[SceneSpec, dict[str, Any]]:
+    """Split a generation's ``backend_config`` into the scene and the backend's options.
+
+    Args:
+        config: ``needle`` (:class:`NeedleSpec` keyword arguments, or one),
+            ``annotate_instruments`` (bool), ``layout`` (:class:`SceneLayout`); every other key
+            is an option of the backend (e.g. PyBullet's ``renderer``), passed on unchanged.
+
+    Raises:
+        TypeError: A scene key with a value of the wrong type.
+    """
+    needle = config.get("needle")
+    if needle is None:
+        needle = NeedleSpec()
+    elif isinstance(needle, Mapping):
+        needle = NeedleSpec(**needle)
+    elif not isinstance(needle, NeedleSpec):
+        raise TypeError(f"'needle' must be NeedleSpec keyword arguments, got {needle!r}")
+    layout = config.get("layout") or DEFAULT_LAYOUT
+    if not isinstance(layout, SceneLayout):
+        raise TypeError(f"'layout' must be a SceneLayout, got {type(layout).__name__}")
+    scene = SceneSpec(
+        needle=needle,
+        annotate_instruments=bool(config.get("annotate_instruments", False)),
+        layout=layout,
+    )
+    return scene, {k: v for k, v in config.items() if k not in SCENE_KEYS}
 
 
 @dataclass(frozen=True)
@@ -99,14 +182,25 @@ class RenderedFrame:
 
 @runtime_checkable
 class RenderBackend(Protocol):
-    """What a generator backend provides."""
+    """What a render backend provides (built by a :data:`BackendFactory`)."""
 
-    def load_scene(self, config: dict) -> None:
-        """Build the scene (tissue, instruments, needle) from a config mapping."""
+    def load_scene(self, scene: SceneSpec) -> None:
+        """Build the scene (tissue, instruments, needle), replacing any previous one.
+
+        Until the first :meth:`set_state` the scene shows :func:`default_state`.
+        """
         ...
 
     def annotated_objects(self) -> list[tuple[str, int]]:
         """(name, BOP obj_id) of each annotated object, in a fixed order; the needle first."""
+        ...
+
+    def object_model(self, name: str) -> ObjectModel:
+        """BOP model (vertices mm, in the object's model frame) of an annotated object.
+
+        ``bopsurg generate`` writes it to ``models/obj_OBJID.ply``; it must be the geometry
+        the backend renders, whether built by code or loaded from a file.
+        """
         ...
 
     def set_state(self, state: SceneState) -> None:
@@ -132,3 +226,29 @@ class RenderBackend(Protocol):
     def close(self) -> None:
         """Release the backend's resources."""
         ...
+
+
+#: What the ``bopsurg.render_backends`` entry point names: backend options (``--backend-option
+#: KEY=VALUE``; strings from the command line, or any JSON value) → a backend. A backend
+#: class whose ``__init__`` takes the options mapping is one.
+BackendFactory = Callable[[Mapping[str, Any]], RenderBackend]
+
+
+__all__ = [
+    "ARMS",
+    "DEFAULT_ECM_JOINTS",
+    "DEFAULT_NEEDLE_POSE",
+    "NEEDLE",
+    "PARKED_JAW",
+    "PARKED_PSM_JOINTS",
+    "SCENE_KEYS",
+    "BackendFactory",
+    "CameraSpec",
+    "LightSpec",
+    "RenderBackend",
+    "RenderedFrame",
+    "SceneSpec",
+    "SceneState",
+    "default_state",
+    "split_backend_config",
+]

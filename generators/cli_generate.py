@@ -6,11 +6,15 @@ import argparse
 import logging
 import math
 import time
+from typing import TYPE_CHECKING, Any
 
-from bopsurg.cli.inputs import add_executor_args
+from bopsurg.cli.inputs import add_executor_args, key_value
 from bopsurg.errors import InputError
 from bopsurg.executors import make_executor
 from bopsurg.geometry import intrinsics_from_fov
+
+if TYPE_CHECKING:
+    from bopsurg.generators.replay import GenerateSettings
 
 log = logging.getLogger(__name__)
 
@@ -18,7 +22,7 @@ HELP = "replay bags from randomised endoscope viewpoints and lighting into a BOP
 
 DESCRIPTION = """\
 Replay each recording (rosbag) --replays times from randomised endoscope (ECM) viewpoints
-and lighting in a headless renderer (PyBullet), and write a BOP dataset:
+and lighting in a headless render backend (PyBullet by default), and write a BOP dataset:
 
   DATASET/models/obj_000001.ply (+ models_info.json)   the needle (obj 1), built by code
   DATASET/camera.json, DATASET/test_targets_bop19.json
@@ -32,6 +36,17 @@ A frame is written every --period seconds of the recording; frames whose needle
 visib_fract is below --min-visib are dropped. Depth is uint16 with depth_scale 0.1 mm.
 Rerun the same command after an interruption: it resumes, and the same seed gives
 byte-identical files.
+
+Render backends are plugins (entry-point group 'bopsurg.render_backends'); --backend picks
+one and each --backend-option KEY=VALUE goes to it. PyBullet's options: renderer=tiny|egl
+(also --renderer), texture_seed=INT (procedural textures), light_distance=M (shadow light).
+"""
+
+EPILOG = """\
+examples:
+  bopsurg generate bags/ep001.bag --out data/needle --replays 4
+  bopsurg generate bags/*.bag --out data/train --split train --workers 2 --annotate-instruments
+  bopsurg generate bags/ep001.bag --out data/tex3 --backend-option texture_seed=3
 """
 
 
@@ -44,6 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "generate",
         help=HELP,
         description=DESCRIPTION,
+        epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("bags", nargs="+", metavar="BAG", help="recordings (ROS1 .bag or ROS2 folder)")
@@ -64,6 +80,25 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--delta", type=float, default=d.delta_mm, help="visibility tolerance, mm (default: 1)"
     )
     p.add_argument("--topic-map", default=d.topic_map, help="topic map: crtk, ambf or a TOML file")
+    _add_camera_args(p, d)
+    _add_needle_args(p)
+    p.add_argument(
+        "--rgb-format", choices=("png", "jpg"), default=d.rgb_format, help="rgb file format"
+    )
+    p.add_argument("--stereo", action="store_true", help="also render the right camera")
+    p.add_argument(
+        "--annotate-instruments",
+        action="store_true",
+        help="annotate instrument parts as further objects (obj_id 2, 3, ...)",
+    )
+    _add_backend_args(p, d)
+    add_executor_args(p, unit="replay")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.set_defaults(func=run)
+
+
+def _add_camera_args(p: argparse.ArgumentParser, d: GenerateSettings) -> None:
+    """``--width --height --fov --K``."""
     p.add_argument("--width", type=int, default=d.width, help="image width, px (default: 640)")
     p.add_argument("--height", type=int, default=d.height, help="image height, px (default: 480)")
     p.add_argument(
@@ -79,6 +114,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FX,FY,CX,CY",
         help="explicit intrinsics in px (overrides --fov)",
     )
+
+
+def _add_needle_args(p: argparse.ArgumentParser) -> None:
+    """``--needle-arc --needle-radius --needle-wire``."""
     p.add_argument(
         "--needle-arc",
         type=float,
@@ -93,20 +132,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--needle-wire", type=float, default=None, metavar="MM", help="wire diameter, mm"
     )
+
+
+def _add_backend_args(p: argparse.ArgumentParser, d: GenerateSettings) -> None:
+    """``--backend --backend-option --renderer --amodal-renderer``."""
     p.add_argument(
-        "--rgb-format", choices=("png", "jpg"), default=d.rgb_format, help="rgb file format"
+        "--renderer",
+        choices=("tiny", "egl"),
+        default=None,
+        help="PyBullet renderer, short for --backend-option renderer=... (default: tiny)",
     )
-    p.add_argument("--stereo", action="store_true", help="also render the right camera")
+    p.add_argument("--backend", default=d.backend, help="render backend plugin (default: pybullet)")
     p.add_argument(
-        "--annotate-instruments",
-        action="store_true",
-        help="annotate instrument parts as further objects (obj_id 2, 3, ...)",
+        "--amodal-renderer",
+        default=d.renderer,
+        metavar="NAME",
+        help="depth renderer plugin for each object alone on the 3x canvas, the one 'bopsurg "
+        "annotate' uses (default: pybullet), or 'backend' for the render backend's own",
     )
-    p.add_argument("--renderer", choices=("tiny", "egl"), default="tiny", help="PyBullet renderer")
-    p.add_argument("--backend", default=d.backend, help="generator backend plugin (pybullet)")
-    add_executor_args(p, unit="replay")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    p.set_defaults(func=run)
+    p.add_argument(
+        "--backend-option",
+        type=key_value,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="option of the render backend (repeatable; see above for PyBullet's)",
+    )
 
 
 def _intrinsics(args: argparse.Namespace) -> tuple[tuple[float, float, float], ...]:
@@ -148,6 +199,29 @@ def _needle_config(args: argparse.Namespace) -> dict[str, float]:
     return cfg
 
 
+def _backend_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The scene keys of the flags plus the --backend-option pairs (recorded as given)."""
+    from bopsurg.generators.backend import SCENE_KEYS
+
+    options = dict(args.backend_option)
+    for key in options:
+        if key in SCENE_KEYS:
+            raise InputError(
+                f"{key!r} describes the scene, not the backend; use --annotate-instruments "
+                "or --needle-*",
+                field="--backend-option",
+            )
+    if args.renderer is not None:
+        options["renderer"] = args.renderer
+    elif args.backend == "pybullet":
+        options.setdefault("renderer", "tiny")  # recorded explicitly, as it always was
+    config: dict[str, Any] = {"annotate_instruments": bool(args.annotate_instruments)}
+    needle = _needle_config(args)
+    if needle:
+        config["needle"] = needle
+    return {**config, **options}
+
+
 def run(args: argparse.Namespace) -> int:
     """Generate the dataset and report what was written."""
     from bopsurg.generators.generate import generate_dataset
@@ -155,13 +229,6 @@ def run(args: argparse.Namespace) -> int:
 
     if args.period <= 0:
         raise InputError("must be > 0", field="--period")
-    backend_config: dict = {
-        "annotate_instruments": bool(args.annotate_instruments),
-        "renderer": args.renderer,
-    }
-    needle = _needle_config(args)
-    if needle:
-        backend_config["needle"] = needle
     settings = GenerateSettings(
         replays=args.replays,
         period=args.period,
@@ -171,7 +238,8 @@ def run(args: argparse.Namespace) -> int:
         stereo=args.stereo,
         topic_map=args.topic_map,
         backend=args.backend,
-        backend_config=backend_config,
+        backend_config=_backend_config(args),
+        renderer=None if args.amodal_renderer == "backend" else args.amodal_renderer,
         width=args.width,
         height=args.height,
         K=_intrinsics(args),

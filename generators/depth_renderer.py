@@ -22,7 +22,7 @@ import tempfile
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
+from typing import Any
 
 import numpy as np
 import pybullet as p
@@ -32,13 +32,13 @@ from scipy.spatial.transform import Rotation
 from bopsurg.bop.models import ObjectModel
 from bopsurg.generators.pybullet_backend import (
     PIXEL_OFFSETS,
-    depth_buffer_to_mm,
-    hull_points,
+    ClosesOnExit,
     projection_matrix,
-    render_window,
+    render_in_window,
     view_matrix,
     write_obj,
 )
+from bopsurg.metrics.point_subsets import hull_vertices
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ def model_key(model: ObjectModel) -> bytes:
     return h.digest()
 
 
-class PyBulletDepthRenderer:
+class PyBulletDepthRenderer(ClosesOnExit):
     """Renders z-depth (mm) of object models with pybullet's TinyRenderer, headless.
 
     Usage::
@@ -80,21 +80,6 @@ class PyBulletDepthRenderer:
         self._by_model: weakref.WeakKeyDictionary[ObjectModel, _Mesh] = weakref.WeakKeyDictionary()
         self._by_key: dict[bytes, _Mesh] = {}
         self._shown: int | None = None
-
-    def __enter__(self) -> PyBulletDepthRenderer:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        with contextlib.suppress(Exception):
-            self.close()
 
     def close(self) -> None:
         """Disconnect the pybullet client and forget the uploaded models (idempotent)."""
@@ -145,7 +130,7 @@ class PyBulletDepthRenderer:
         center = 0.5 * (lo + hi)
         radius = float(np.linalg.norm(model.pts - center, axis=1).max())
         log.debug("uploaded a model: %d vertices, %d faces", model.n_vertices, len(model.faces))
-        return _Mesh(body=body, hull=hull_points(model) * 1e-3, center=center, radius=radius)
+        return _Mesh(body=body, hull=hull_vertices(model.pts) * 1e-3, center=center, radius=radius)
 
     def render_depth(
         self,
@@ -187,34 +172,29 @@ class PyBulletDepthRenderer:
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = 1e-3 * t_mm
-        window = render_window(mesh.hull, T, K, width, height, near)
-        if window is None:
-            return out
-        u0, v0, u1, v1 = window
-        Kw = K.copy()
-        Kw[0, 2] -= u0
-        Kw[1, 2] -= v0
         client = self._client
-        if self._shown != mesh.body:
-            if self._shown is not None:
-                p.changeVisualShape(self._shown, -1, rgbaColor=[1, 1, 1, 0], physicsClientId=client)
-            p.changeVisualShape(mesh.body, -1, rgbaColor=[1, 1, 1, 1], physicsClientId=client)
-            self._shown = mesh.body
-        # The camera is the world frame; the model sits at its pose in it.
-        q = Rotation.from_matrix(R).as_quat()
-        p.resetBasePositionAndOrientation(
-            mesh.body, T[:3, 3].tolist(), q.tolist(), physicsClientId=client
-        )
-        w, h = u1 - u0, v1 - v0
-        _, _, _, depth, seg = p.getCameraImage(
-            w,
-            h,
-            viewMatrix=view_matrix(np.eye(4)),
-            projectionMatrix=projection_matrix(Kw, w, h, near, far, PIXEL_OFFSETS["tiny"]),
-            renderer=p.ER_TINY_RENDERER,
-            physicsClientId=client,
-        )
-        out[v0:v1, u0:u1] = depth_buffer_to_mm(
-            np.asarray(depth).reshape(h, w), near, far, np.asarray(seg).reshape(h, w)
-        )
-        return out
+
+        def render(Kw: F64, w: int, h: int) -> tuple[NDArray[Any], NDArray[Any]]:
+            if self._shown != mesh.body:
+                if self._shown is not None:
+                    p.changeVisualShape(
+                        self._shown, -1, rgbaColor=[1, 1, 1, 0], physicsClientId=client
+                    )
+                p.changeVisualShape(mesh.body, -1, rgbaColor=[1, 1, 1, 1], physicsClientId=client)
+                self._shown = mesh.body
+            # The camera is the world frame; the model sits at its pose in it.
+            q = Rotation.from_matrix(R).as_quat()
+            p.resetBasePositionAndOrientation(
+                mesh.body, T[:3, 3].tolist(), q.tolist(), physicsClientId=client
+            )
+            _, _, _, depth, seg = p.getCameraImage(
+                w,
+                h,
+                viewMatrix=view_matrix(np.eye(4)),
+                projectionMatrix=projection_matrix(Kw, w, h, near, far, PIXEL_OFFSETS["tiny"]),
+                renderer=p.ER_TINY_RENDERER,
+                physicsClientId=client,
+            )
+            return depth, seg
+
+        return render_in_window(mesh.hull, T, K, (width, height), (near, far), render)

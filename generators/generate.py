@@ -14,6 +14,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
@@ -24,9 +25,15 @@ from bopsurg.bop.jsonio import load_json
 from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
 from bopsurg.bop.targets import enumerate_targets, save_targets
-from bopsurg.errors import InputError
+from bopsurg.errors import BopsurgError, InputError
 from bopsurg.executors import Executor, LocalExecutor
-from bopsurg.generators.backend import NEEDLE
+from bopsurg.generators.backend import (
+    NEEDLE,
+    BackendFactory,
+    RenderBackend,
+    split_backend_config,
+)
+from bopsurg.generators.recording import Recording
 from bopsurg.generators.replay import (
     AmodalRenderer,
     GenerateSettings,
@@ -54,16 +61,33 @@ class GenerateReport:
     frames_written: int
 
 
-def _read_bag(path: str, topic_map: str) -> object:
-    from bopsurg.generators.bags import read_bag
+def _read_bag(path: str, topic_map: str) -> Recording:
+    from bopsurg.generators.bag_reader import read_bag
 
     return read_bag(path, topic_map=topic_map)
 
 
-def make_backend(settings: GenerateSettings) -> object:
-    """Instantiate and load the backend plugin named in the settings."""
-    backend = load_plugin("generator", settings.backend)()
-    backend.load_scene(dict(settings.backend_config))
+def make_backend(settings: GenerateSettings) -> RenderBackend:
+    """Build the backend plugin named in the settings and load the scene into it.
+
+    The settings' ``backend_config`` holds the scene keys
+    (:data:`~bopsurg.generators.backend.SCENE_KEYS`) and the backend's own options.
+
+    Raises:
+        InputError: A scene key or backend option the backend rejects (one line).
+        BopsurgError: The plugin is not installed or is not a complete render backend.
+    """
+    factory: BackendFactory = load_plugin("backend", settings.backend)
+    try:
+        scene, options = split_backend_config(settings.backend_config)
+        backend = factory(options)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"backend {settings.backend!r}: {err}", field="--backend-option") from err
+    if not isinstance(backend, RenderBackend):
+        methods = [m for m in dir(RenderBackend) if not m.startswith("_")]
+        missing = [m for m in methods if not callable(getattr(backend, m, None))]
+        raise BopsurgError(f"backend {settings.backend!r} lacks {', '.join(missing)}")
+    backend.load_scene(scene)
     return backend
 
 
@@ -85,9 +109,9 @@ def _replay_unit(unit: ReplayUnit, report: Callable[[int], None]) -> ReplayResul
     backend = make_backend(unit.settings)
     try:
         amodal = make_amodal(unit.settings, unit.out)
-        return run_replay(unit, backend, _read_bag, amodal=amodal, on_frame=report)  # type: ignore[arg-type]
+        return run_replay(unit, backend, _read_bag, amodal=amodal, on_frame=report)
     finally:
-        backend.close()  # type: ignore[attr-defined]
+        backend.close()
 
 
 # -----------------------------------------------------------------------------------------
@@ -115,16 +139,16 @@ def _write_dataset_files(
             )
     backend = make_backend(settings)
     try:
-        infos = {}
-        for name, obj_id in backend.annotated_objects():  # type: ignore[attr-defined]
-            model = backend.object_model(name)  # type: ignore[attr-defined]
+        infos: dict[int, dict[str, Any]] = {}
+        for name, obj_id in backend.annotated_objects():
+            model = backend.object_model(name)
             save_ply(out / "models" / f"obj_{obj_id:06d}.ply", model)
             infos[obj_id] = compute_model_info(model.pts)
             if name == NEEDLE:  # tip, tail and plane for the ambiguity analysis of eval
                 infos[obj_id].update(needle_keypoints(model))
         save_models_info(out / "models" / "models_info.json", infos)
     finally:
-        backend.close()  # type: ignore[attr-defined]
+        backend.close()
     save_camera_json(out, settings.K, settings.width, settings.height, settings.depth_scale)
     write_text(info_path, json.dumps(info, indent=2, sort_keys=True) + "\n")
 
@@ -177,7 +201,7 @@ def generate_dataset(
     frames_per_bag = []
     for b in bag_paths:
         rec = _read_bag(b, settings.topic_map)
-        frames_per_bag.append(len(frame_times(rec.start, rec.end, settings.period)))  # type: ignore[attr-defined]
+        frames_per_bag.append(len(frame_times(rec.start, rec.end, settings.period)))
     total = sum(frames_per_bag) * settings.replays
     out = Path(out)
     for folder in (out, out / "models"):  # leftovers of a killed driver (not scene folders)

@@ -29,6 +29,11 @@ and specular coefficients. ``shadows`` switches TinyRenderer's shadow map on; it
 from a light ``light_distance`` away looking at the world origin, with a depth bias too large
 for mm-scale casters, so it mostly dims the image slightly rather than drawing tool shadows.
 
+Options (``bopsurg generate --backend-option KEY=VALUE``, see :data:`OPTION_KEYS`): the
+``renderer``, the ``texture_seed`` of the procedural textures and the shadow light's
+``light_distance``; the scene itself comes as a backend-independent
+:class:`~bopsurg.generators.backend.SceneSpec`.
+
 Speed: build the scene once (:meth:`~PyBulletBackend.load_scene`), then only poses change;
 nothing is re-uploaded per frame.
 
@@ -48,61 +53,48 @@ import os
 import sys
 import tempfile
 import weakref
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Self
 
 import cv2
 import numpy as np
 import pybullet as p
 from numpy.typing import NDArray
-from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.models import ObjectModel
-from bopsurg.generators.backend import CameraSpec, LightSpec, RenderedFrame, SceneState
-from bopsurg.generators.kinematics import SceneLayout
-from bopsurg.generators.pybullet_scene import (
+from bopsurg.generators.backend import (
     ARMS,
+    CameraSpec,
+    LightSpec,
+    RenderedFrame,
+    SceneSpec,
+    SceneState,
+    default_state,
+)
+from bopsurg.generators.pybullet_scene import (
     SceneAssets,
     VisualPart,
     build_scene,
     part_poses,
 )
-from bopsurg.needle import NeedleSpec
+from bopsurg.metrics.point_subsets import hull_vertices
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
-#: Recognised :meth:`PyBulletBackend.load_scene` keys.
-CONFIG_KEYS = (
-    "layout",
-    "needle",
-    "annotate_instruments",
-    "renderer",
-    "texture_seed",
-    "light_distance",
-)
+#: Recognised options of :class:`PyBulletBackend` (``--backend-option KEY=VALUE``).
+OPTION_KEYS = ("renderer", "texture_seed", "light_distance")
 #: Renderers: pybullet's software TinyRenderer, or the EGL plugin (OpenGL, Mesa llvmpipe
 #: without a GPU).
 RENDERERS = ("tiny", "egl")
 
 #: Principal-point offsets (x, y), px, that make each renderer follow OpenCV's convention.
 PIXEL_OFFSETS = {"tiny": (0.0, 1.0), "egl": (0.5, 0.5)}
-
-#: Pose of the instruments and the needle before the first :meth:`PyBulletBackend.set_state`:
-#: both tools above the pad's centre, jaws slightly open, the needle lying on the pad.
-DEFAULT_PSM_JOINTS = {
-    "psm1": np.array([0.0, 0.0, 0.12, 0.0, 0.0, 0.0]),
-    "psm2": np.array([0.0, 0.0, 0.12, 0.0, 0.0, 0.0]),
-}
-DEFAULT_JAWS = {"psm1": 0.3, "psm2": 0.3}
-DEFAULT_NEEDLE_POSE = np.array(
-    [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.004], [0.0, 0.0, 0.0, 1.0]]
-)
 
 # The EGL plugin keeps one renderer per process, shared by every client that loads it:
 # two EGL scenes would draw into each other, and unloading one crashes the other. So at most
@@ -195,14 +187,69 @@ def render_window(
     return u0, v0, u1, v1
 
 
-def hull_points(model: ObjectModel) -> F64:
-    """Vertices of the model's convex hull (its bounding-box corners if flat), mm."""
-    try:
-        return model.pts[ConvexHull(model.pts).vertices]
-    except (QhullError, ValueError):
-        lo, hi = model.pts.min(axis=0), model.pts.max(axis=0)
-        corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)])
-        return lo + corners * (hi - lo)
+#: Renders depth and segmentation buffers of a window: ``(K of the window, width, height)``.
+WindowRender = Callable[[F64, int, int], tuple[NDArray[Any], NDArray[Any]]]
+
+
+def render_in_window(
+    points: F64,
+    T_cam_obj: F64,
+    K: F64,
+    size: tuple[int, int],
+    clip: tuple[float, float],
+    render: WindowRender,
+) -> F64:
+    """Depth (mm) of one object on a canvas, rendering only the window it can cover.
+
+    Args:
+        points: (N, 3) points whose convex hull contains the object (its frame), m.
+        T_cam_obj: Object pose in the camera, m.
+        K: Intrinsics of the canvas, px.
+        size: (width, height) of the canvas, px.
+        clip: (near, far) clipping distances of the render, m.
+        render: Renders the window's buffers; called once, only if the object can be seen.
+
+    Returns:
+        (height, width) z-depth, mm, 0 where the object is absent.
+    """
+    width, height = size
+    near, far = clip
+    out = np.zeros((height, width))
+    window = render_window(points, T_cam_obj, K, width, height, near)
+    if window is None:
+        return out
+    u0, v0, u1, v1 = window
+    Kw = K.copy()
+    Kw[0, 2] -= u0
+    Kw[1, 2] -= v0
+    w, h = u1 - u0, v1 - v0
+    depth, seg = render(Kw, w, h)
+    out[v0:v1, u0:u1] = depth_buffer_to_mm(
+        np.asarray(depth).reshape(h, w), near, far, np.asarray(seg).reshape(h, w)
+    )
+    return out
+
+
+class ClosesOnExit:
+    """``with`` support and closing on garbage collection, for classes with ``close()``."""
+
+    def close(self) -> None:
+        """Release resources (idempotent)."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
 
 
 @contextlib.contextmanager
@@ -323,69 +370,71 @@ def _quaternions(poses: list[F64]) -> NDArray[np.float64]:
 
 
 @dataclass(frozen=True)
-class _Config:
-    layout: SceneLayout
-    needle: NeedleSpec
-    annotate_instruments: bool
-    renderer: str
-    texture_seed: int
-    light_distance: float
+class PyBulletOptions:
+    """Options of :class:`PyBulletBackend`.
+
+    Attributes:
+        renderer: ``"tiny"`` (TinyRenderer, exact) or ``"egl"`` (faster; depth quantised to
+            µm; one EGL backend per process at a time).
+        texture_seed: Seed of the procedural textures.
+        light_distance: Distance of the shadow-casting light from the world origin, m
+            (TinyRenderer's shadow map looks at the origin).
+    """
+
+    renderer: str = "tiny"
+    texture_seed: int = 0
+    light_distance: float = 0.3
 
 
-def parse_config(config: dict[str, Any]) -> _Config:
-    """Check a :meth:`PyBulletBackend.load_scene` mapping and fill in the defaults.
+def parse_options(options: Mapping[str, Any]) -> PyBulletOptions:
+    """Check backend options (strings from the command line, or typed values).
 
     Raises:
-        ValueError: An unknown key or value.
-        TypeError: A value of the wrong type.
+        ValueError: An unknown key or a bad value (the message names the key).
     """
-    unknown = sorted(set(config) - set(CONFIG_KEYS))
+    unknown = sorted(set(options) - set(OPTION_KEYS))
     if unknown:
-        raise ValueError(f"unknown scene config key {unknown[0]!r}; expected some of {CONFIG_KEYS}")
-    layout = config.get("layout") or SceneLayout()
-    if not isinstance(layout, SceneLayout):
-        raise TypeError(f"'layout' must be a SceneLayout, got {type(layout).__name__}")
-    needle = config.get("needle")
-    if needle is None:
-        needle = NeedleSpec()
-    elif isinstance(needle, dict):
-        needle = NeedleSpec(**needle)
-    elif not isinstance(needle, NeedleSpec):
-        raise TypeError(f"'needle' must be NeedleSpec keyword arguments, got {needle!r}")
-    renderer = config.get("renderer", "tiny")
+        raise ValueError(f"unknown option {unknown[0]!r}; expected some of {OPTION_KEYS}")
+    renderer = str(options.get("renderer", "tiny"))
     if renderer not in RENDERERS:
         raise ValueError(f"'renderer' must be one of {RENDERERS}, got {renderer!r}")
-    light_distance = float(config.get("light_distance", 0.3))
-    if light_distance <= 0:
+    try:
+        texture_seed = int(options.get("texture_seed", 0))
+        light_distance = float(options.get("light_distance", 0.3))
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"'texture_seed' must be an integer, 'light_distance' a number: {err}"
+        ) from err
+    if not light_distance > 0:
         raise ValueError(f"'light_distance' must be positive, got {light_distance}")
-    return _Config(
-        layout=layout,
-        needle=needle,
-        annotate_instruments=bool(config.get("annotate_instruments", False)),
-        renderer=renderer,
-        texture_seed=int(config.get("texture_seed", 0)),
-        light_distance=light_distance,
-    )
+    return PyBulletOptions(renderer, texture_seed, light_distance)
 
 
-class PyBulletBackend:
+class PyBulletBackend(ClosesOnExit):
     """The built-in rendering backend (pybullet, headless, one DIRECT client per instance).
 
     Usage::
 
-        with PyBulletBackend() as backend:
-            backend.load_scene({"annotate_instruments": True})
+        with PyBulletBackend({"renderer": "tiny"}) as backend:
+            backend.load_scene(SceneSpec(annotate_instruments=True))
             backend.set_state(state)
             frame = backend.render(camera, LightSpec())
             amodal = backend.render_object_depth("needle", big_camera)
 
     Several instances can live in one process; each owns its pybullet clients.
+
+    Args:
+        options: See :class:`PyBulletOptions` (keys :data:`OPTION_KEYS`; None = defaults).
+
+    Raises:
+        ValueError: An unknown option or a bad value.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, options: Mapping[str, Any] | None = None) -> None:
+        self.options = parse_options(options or {})
         self._client: int | None = None
         self._solo: int | None = None  # annotated objects only, for object-alone renders
-        self._cfg: _Config | None = None
+        self._scene: SceneSpec | None = None
         self._assets: SceneAssets | None = None
         self._bodies: dict[str, int] = {}
         self._solo_bodies: dict[str, int] = {}
@@ -393,29 +442,14 @@ class PyBulletBackend:
         self._poses: dict[str, F64] = {}
         self._hulls: dict[str, F64] = {}  # annotated objects' hull points, m
         self._lut = np.zeros(1, dtype=np.int32)  # body id + 1 -> instance value
-        self._jaws: dict[str, float] = dict(DEFAULT_JAWS)
+        self._jaws: dict[str, float] = default_state().jaws
 
     # ------------------------------------------------------------------- lifetime
-
-    def __enter__(self) -> PyBulletBackend:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        with contextlib.suppress(Exception):
-            self.close()
 
     def close(self) -> None:
         """Disconnect the pybullet clients (idempotent)."""
         global _egl_owner
-        egl = self._cfg is not None and self._cfg.renderer == "egl"
+        egl = self.options.renderer == "egl"
         for client in (self._client, self._solo):
             if client is None:
                 continue
@@ -432,51 +466,40 @@ class PyBulletBackend:
 
     # ---------------------------------------------------------------------- scene
 
-    def load_scene(self, config: dict[str, Any]) -> None:
-        """Build the scene (replacing any previous one).
+    def load_scene(self, scene: SceneSpec) -> None:
+        """Build the scene (replacing any previous one), posed at the default state.
 
         Args:
-            config: Mapping with the optional keys
-
-                - ``layout``: :class:`~bopsurg.generators.kinematics.SceneLayout` (None =
-                  default), where the arms stand;
-                - ``needle``: :class:`~bopsurg.needle.NeedleSpec` or its keyword arguments
-                  (None = default needle);
-                - ``annotate_instruments`` (bool, False): also annotate the instruments'
-                  wrists and jaws (obj_ids 2..7, see :mod:`~.pybullet_scene`);
-                - ``renderer``: ``"tiny"`` (default, exact) or ``"egl"`` (faster; depth
-                  quantised to µm; one EGL backend per process at a time; raises
-                  RuntimeError if the plugin does not load or another backend uses it);
-                - ``texture_seed`` (int, 0): seed of the procedural textures;
-                - ``light_distance`` (float, 0.3 m): distance of the shadow-casting light
-                  from the world origin (TinyRenderer's shadow map looks at the origin).
+            scene: Needle, layout, and whether the instruments' wrists and jaws are annotated
+                too (obj_ids 2..7, see :mod:`~.pybullet_scene`).
 
         Raises:
-            ValueError: An unknown key or value (the message names the key).
+            RuntimeError: With ``renderer="egl"``: the plugin does not load, or another live
+                backend of this process uses it.
         """
-        cfg = parse_config(config)
         self.close()
         try:
-            self._build(cfg)
+            self._build(scene)
         except BaseException:
             self.close()  # no half-built scene: load_scene() must be called again
-            self._cfg = self._assets = None
+            self._scene = self._assets = None
             raise
 
-    def _build(self, cfg: _Config) -> None:
+    def _build(self, scene: SceneSpec) -> None:
         """Create the clients, upload every part, pose them at the default state."""
-        self._cfg = cfg
+        self._scene = scene
+        egl = self.options.renderer == "egl"
         assets = build_scene(
-            cfg.needle,
-            cfg.layout,
-            annotate_instruments=cfg.annotate_instruments,
-            texture_seed=cfg.texture_seed,
+            scene.needle,
+            scene.layout,
+            annotate_instruments=scene.annotate_instruments,
+            texture_seed=self.options.texture_seed,
         )
         self._assets = assets
-        if cfg.renderer == "egl":
+        if egl:
             self._claim_egl()
         self._client = p.connect(p.DIRECT)
-        if cfg.renderer == "egl":
+        if egl:
             load_egl(self._client)  # before any body, or the plugin does not see them
         # pybullet reads meshes and textures from files only: write them to a private
         # temporary folder, removed as soon as everything is loaded.
@@ -499,22 +522,21 @@ class PyBulletBackend:
                 p.changeVisualShape(body, -1, rgbaColor=[1, 1, 1, 0], physicsClientId=self._solo)
                 self._solo_bodies[name] = body
         self._hulls = {
-            name: hull_points(assets.parts[name].model) * 1e-3 for name in assets.annotated
+            name: hull_vertices(assets.parts[name].model.pts) * 1e-3 for name in assets.annotated
         }
         # seg + 1 indexes the table; its last entry (0) catches anything out of range.
         self._lut = np.zeros(max(self._bodies.values()) + 3, dtype=np.int32)
         for k, name in enumerate(assets.annotated):
             self._lut[self._bodies[name] + 1] = k + 1
         self._poses = {name: np.eye(4) for name in assets.parts}
-        self._jaws = dict(DEFAULT_JAWS)
-        self._apply_poses(
-            part_poses(cfg.layout, DEFAULT_PSM_JOINTS, DEFAULT_JAWS, DEFAULT_NEEDLE_POSE)
-        )
+        state = default_state()
+        self._jaws = state.jaws
+        self._apply_poses(part_poses(scene.layout, state.psm_joints, state.jaws, state.needle_pose))
         log.debug(
             "scene loaded: %d bodies, annotated %s, renderer %s",
             len(self._bodies),
             assets.annotated,
-            cfg.renderer,
+            self.options.renderer,
         )
 
     def _claim_egl(self) -> None:
@@ -540,10 +562,10 @@ class PyBulletBackend:
                 raise RuntimeError(f"pybullet could not load the texture {path}")
         return ids
 
-    def _require(self) -> tuple[int, SceneAssets, _Config]:
-        if self._client is None or self._assets is None or self._cfg is None:
+    def _require(self) -> tuple[int, SceneAssets, SceneSpec]:
+        if self._client is None or self._assets is None or self._scene is None:
             raise RuntimeError("no scene: call load_scene() first")
-        return self._client, self._assets, self._cfg
+        return self._client, self._assets, self._scene
 
     def annotated_objects(self) -> list[tuple[str, int]]:
         """(name, BOP obj_id) of the annotated objects: the needle (1), then instrument parts."""
@@ -572,7 +594,7 @@ class PyBulletBackend:
         Raises:
             ValueError: An unknown arm name or a malformed needle pose.
         """
-        _, _, cfg = self._require()
+        _, _, scene = self._require()
         needle = np.asarray(state.needle_pose, dtype=np.float64)
         if needle.shape != (4, 4):
             raise ValueError(f"needle_pose must be 4x4, got shape {needle.shape}")
@@ -581,7 +603,7 @@ class PyBulletBackend:
             raise ValueError(f"unknown arm {unknown[0]!r} in jaws; expected one of {ARMS}")
         jaws = dict(self._jaws)
         jaws.update({k: float(v) for k, v in state.jaws.items()})
-        poses = part_poses(cfg.layout, state.psm_joints, jaws, needle)
+        poses = part_poses(scene.layout, state.psm_joints, jaws, needle)
         self._jaws = jaws
         self._apply_poses(poses)
 
@@ -626,18 +648,19 @@ class PyBulletBackend:
 
     def render(self, camera: CameraSpec, light: LightSpec) -> RenderedFrame:
         """Render the whole scene: RGB, z-depth (mm) and the annotated-instance map."""
-        client, _, cfg = self._require()
+        client, _, _ = self._require()
+        renderer = self.options.renderer
         K = np.asarray(camera.K, dtype=np.float64)
         direction = np.asarray(light.direction, dtype=np.float64)
         direction = direction / np.linalg.norm(direction)
         # The EGL plugin prints to stdout on some calls: keep stdout clean.
-        quiet = stdout_to_stderr() if cfg.renderer == "egl" else contextlib.nullcontext()
+        quiet = stdout_to_stderr() if renderer == "egl" else contextlib.nullcontext()
         with quiet:
             _, _, rgba, depth, seg = p.getCameraImage(
-                **self._camera_args(camera, K, camera.width, camera.height, cfg.renderer),
+                **self._camera_args(camera, K, camera.width, camera.height, renderer),
                 lightDirection=direction.tolist(),
                 lightColor=np.asarray(light.color, dtype=np.float64).tolist(),
-                lightDistance=cfg.light_distance,
+                lightDistance=self.options.light_distance,
                 shadow=int(bool(light.shadows)),
                 lightAmbientCoeff=float(light.ambient),
                 lightDiffuseCoeff=float(light.diffuse),
@@ -665,28 +688,19 @@ class PyBulletBackend:
         if name not in assets.annotated:
             raise KeyError(f"{name!r} is not annotated; annotated: {list(assets.annotated)}")
         K = np.asarray(camera.K, dtype=np.float64)
-        out = np.zeros((camera.height, camera.width))
         T_cam_obj = np.linalg.solve(camera.T_world_cam, self._poses[name])
-        window = render_window(
-            self._hulls[name], T_cam_obj, K, camera.width, camera.height, camera.near
+
+        def render(Kw: F64, w: int, h: int) -> tuple[NDArray[Any], NDArray[Any]]:
+            return self._render_solo(name, self._camera_args(camera, Kw, w, h, "tiny"))
+
+        return render_in_window(
+            self._hulls[name],
+            T_cam_obj,
+            K,
+            (camera.width, camera.height),
+            (camera.near, camera.far),
+            render,
         )
-        if window is None:
-            return out
-        u0, v0, u1, v1 = window
-        Kw = K.copy()
-        Kw[0, 2] -= u0
-        Kw[1, 2] -= v0
-        depth, seg = self._render_solo(
-            name, self._camera_args(camera, Kw, u1 - u0, v1 - v0, "tiny")
-        )
-        shape = (v1 - v0, u1 - u0)
-        out[v0:v1, u0:u1] = depth_buffer_to_mm(
-            np.asarray(depth).reshape(shape),
-            camera.near,
-            camera.far,
-            np.asarray(seg).reshape(shape),
-        )
-        return out
 
     def _render_solo(self, name: str, args: dict[str, Any]) -> tuple[NDArray[Any], NDArray[Any]]:
         """Depth and segmentation buffers of the object in the solo client (TinyRenderer)."""
@@ -716,10 +730,14 @@ class PyBulletBackend:
 
 __all__ = [
     "ARMS",
-    "CONFIG_KEYS",
+    "OPTION_KEYS",
+    "ClosesOnExit",
     "PyBulletBackend",
+    "PyBulletOptions",
+    "WindowRender",
     "depth_buffer_to_mm",
     "projection_matrix",
+    "render_in_window",
     "render_window",
     "view_matrix",
 ]

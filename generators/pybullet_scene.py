@@ -41,13 +41,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.bop.models import ObjectModel
+from bopsurg.generators.backend import ARMS
 from bopsurg.generators.kinematics import SceneLayout, psm_link_frames, rot_x
 from bopsurg.needle import NeedleSpec, needle_mesh
 
 F64 = NDArray[np.float64]
 
 #: Arms, in annotation order; index i is ``SceneLayout.psm_base(i)``.
-ARMS = ("psm1", "psm2")
 #: Instrument parts per arm; the annotated ones (with ``annotate_instruments``) are marked.
 INSTRUMENT_PARTS = ("shaft", "wrist", "yaw", "jaw1", "jaw2")
 ANNOTATED_INSTRUMENT_PARTS = ("wrist", "jaw1", "jaw2")
@@ -132,7 +132,9 @@ class SceneAssets:
 
 def _flat_polygons(polygons: list[F64]) -> ObjectModel:
     """Flat-shaded mesh of convex planar polygons (each (n, 3), counter-clockwise from outside)."""
-    pts, faces, normals = [], [], []
+    pts: list[F64] = []
+    faces: list[list[int]] = []
+    normals: list[F64] = []
     base = 0
     for poly in polygons:
         poly = np.asarray(poly, dtype=np.float64)

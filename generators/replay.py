@@ -26,8 +26,9 @@ import hashlib
 import json
 import logging
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,12 +49,19 @@ from bopsurg.bop.scene import (
     save_scene_gt_info,
 )
 from bopsurg.errors import InputError
-from bopsurg.generators.backend import NEEDLE, CameraSpec, RenderBackend, SceneState
+from bopsurg.generators.backend import (
+    NEEDLE,
+    CameraSpec,
+    LightSpec,
+    RenderBackend,
+    RenderedFrame,
+)
 from bopsurg.generators.kinematics import ecm_camera_pose
+from bopsurg.generators.recording import Recording
 from bopsurg.generators.viewpoints import ReplayDraw, draw_replay, light_in_world
 from bopsurg.geometry import intrinsics_from_fov
 from bopsurg.plugins import DepthRenderer
-from bopsurg.visibility import instance_visibility
+from bopsurg.visibility import InstanceVisibility, instance_visibility, large_canvas
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +89,10 @@ class GenerateSettings:
         K: Camera matrix, px.
         stereo: Also render the right camera (4 mm baseline) into ``rgb_right/``.
         topic_map: Topic map of the bags (name or TOML path).
-        backend: Backend plugin name.
-        backend_config: ``load_scene`` config of the backend.
+        backend: Backend plugin name (entry-point group ``bopsurg.render_backends``).
+        backend_config: The scene (keys :data:`~bopsurg.generators.backend.SCENE_KEYS`, for
+            :meth:`RenderBackend.load_scene`) and the backend's own options (every other
+            key, for its factory); see :func:`~bopsurg.generators.backend.split_backend_config`.
         renderer: Depth renderer plugin for the object-alone renders (the one
             ``bopsurg annotate`` uses); ``None`` uses the backend's own.
         rgb_format: ``png`` (BOP real) or ``jpg`` (BOP pbr).
@@ -172,10 +182,7 @@ def _camera(
     K = np.array(settings.K, dtype=np.float64)
     w, h = settings.width, settings.height
     if large:  # BOP's 3× canvas: truncated parts are rendered too
-        K = K.copy()
-        K[0, 2] += w
-        K[1, 2] += h
-        w, h = 3 * w, 3 * h
+        K, w, h = large_canvas(K, w, h)
     return CameraSpec(K=K, width=w, height=h, T_world_cam=T_world_cam)
 
 
@@ -238,10 +245,68 @@ class _SceneFiles:
         )
 
 
+@dataclass(frozen=True)
+class _View:
+    """The drawn viewpoint of a replay: cameras (image, 3× canvas, right eye) and light."""
+
+    T_world_cam: np.ndarray
+    camera: CameraSpec
+    canvas: CameraSpec
+    right: CameraSpec | None
+    light: LightSpec
+
+    @classmethod
+    def of(cls, settings: GenerateSettings, draw: ReplayDraw) -> _View:
+        T_world_cam = ecm_camera_pose(draw.ecm_joints)
+        right = None
+        if settings.stereo:
+            right = _camera(settings, ecm_camera_pose(draw.ecm_joints, right=True))
+        return cls(
+            T_world_cam=T_world_cam,
+            camera=_camera(settings, T_world_cam),
+            canvas=_camera(settings, T_world_cam, large=True),
+            right=right,
+            light=light_in_world(draw, T_world_cam),
+        )
+
+
+def _new_record(unit: ReplayUnit, draw: ReplayDraw, frames: int) -> dict[str, Any]:
+    """The progress record of a replay that has not started."""
+    settings = unit.settings
+    return {
+        "bopsurg_version": __version__,
+        "bag": str(unit.bag),
+        "bag_index": unit.bag_index,
+        "replay_index": unit.replay_index,
+        "scene_id": unit.scene_id,
+        "seed": [settings.seed, unit.bag_index, unit.replay_index],
+        "draw": draw.to_json(),
+        "frames": frames,
+        "next_frame": 0,
+        "complete": False,
+    }
+
+
+def _amodal_depths(
+    backend: RenderBackend,
+    amodal: AmodalRenderer | None,
+    objects: list[tuple[str, int]],
+    poses: list[tuple[np.ndarray, np.ndarray]],
+    canvas: CameraSpec,
+) -> list[np.ndarray]:
+    """Each annotated object's depth alone (mm) on the 3× canvas, in ``objects`` order."""
+    if amodal is None:
+        return [backend.render_object_depth(name, canvas) for name, _ in objects]
+    return [
+        amodal.render(obj_id, R, t, canvas.K, canvas.width, canvas.height)
+        for (_, obj_id), (R, t) in zip(objects, poses, strict=True)
+    ]
+
+
 def run_replay(
     unit: ReplayUnit,
     backend: RenderBackend,
-    recording_loader: Callable[[str, str], object],
+    recording_loader: Callable[[str, str], Recording],
     *,
     amodal: AmodalRenderer | None = None,
     on_frame: Callable[[int], None] | None = None,
@@ -251,7 +316,7 @@ def run_replay(
     Args:
         unit: The replay.
         backend: A backend with the scene loaded (see :meth:`RenderBackend.load_scene`).
-        recording_loader: ``(bag_path, topic_map) -> Recording`` (``bags.read_bag``).
+        recording_loader: ``(bag_path, topic_map) -> Recording`` (``bag_reader.read_bag``).
         amodal: Renders each GT instance alone from its *written* model and pose, exactly as
             ``bopsurg annotate`` will, so re-annotating the files reproduces the generator's
             masks pixel for pixel; without it the backend's own object-alone render is used.
@@ -267,84 +332,25 @@ def run_replay(
     if files.record.get("complete"):
         return ReplayResult(unit.scene_id, 0, len(files.gt), skipped=True)
     recording = recording_loader(unit.bag, settings.topic_map)
-    times = frame_times(recording.start, recording.end, settings.period)  # type: ignore[attr-defined]
-    if not files.record:
-        files.record = {
-            "bopsurg_version": __version__,
-            "bag": str(unit.bag),
-            "bag_index": unit.bag_index,
-            "replay_index": unit.replay_index,
-            "scene_id": unit.scene_id,
-            "seed": [settings.seed, unit.bag_index, unit.replay_index],
-            "draw": draw.to_json(),
-            "frames": len(times),
-            "next_frame": 0,
-            "complete": False,
-        }
+    times = frame_times(recording.start, recording.end, settings.period)
+    files.record = files.record or _new_record(unit, draw, len(times))
     start = int(files.record["next_frame"])
-    T_world_cam = ecm_camera_pose(draw.ecm_joints)
-    T_world_cam_r = ecm_camera_pose(draw.ecm_joints, right=True) if settings.stereo else None
-    camera = _camera(settings, T_world_cam)
-    camera_large = _camera(settings, T_world_cam, large=True)
-    light = light_in_world(draw, T_world_cam)
+    view = _View.of(settings, draw)
     objects = backend.annotated_objects()
-    K = np.array(settings.K, dtype=np.float64)
     rendered = 0
     # On resume the earlier frames are rendered again, unwritten: TinyRenderer's output can
     # depend (by a pixel) on what it rendered before, and this keeps a resumed replay
-    # byte-identical to an uninterrupted one.
+    # byte-identical to an uninterrupted one (the object-alone renderer's history too).
     for k in range(len(times)):
-        warm_up = k < start
-        state = recording.state_at(float(times[k]))  # type: ignore[attr-defined]
-        state = SceneState(
-            psm_joints=state.psm_joints,
-            jaws=state.jaws,
-            ecm_joints=np.asarray(draw.ecm_joints),
-            needle_pose=state.needle_pose,
-        )
-        backend.set_state(state)
-        frame = backend.render(camera, light)
-        if warm_up:
-            for name, obj_id in objects:  # the object-alone renderer's history too
-                if amodal is not None:
-                    R, t = _pose_mm(T_world_cam, backend.object_pose(name))
-                    amodal.render(
-                        obj_id, R, t, camera_large.K, camera_large.width, camera_large.height
-                    )
-                else:
-                    backend.render_object_depth(name, camera_large)
+        state = recording.state_at(float(times[k]))
+        backend.set_state(replace(state, ecm_joints=np.asarray(draw.ecm_joints)))
+        frame = backend.render(view.camera, view.light)
+        poses = [_pose_mm(view.T_world_cam, backend.object_pose(name)) for name, _ in objects]
+        large = _amodal_depths(backend, amodal, objects, poses, view.canvas)
+        if k < start:
             continue
         rendered += 1
-        # The depth as it will be read back from the PNG: visibility is computed on it.
-        depth_units = np.rint(frame.depth / settings.depth_scale)
-        depth_saved = depth_units * settings.depth_scale
-        poses = [_pose_mm(T_world_cam, backend.object_pose(name)) for name, _ in objects]
-        visib = []
-        for (name, obj_id), (R, t) in zip(objects, poses, strict=True):
-            if amodal is not None:
-                large = amodal.render(
-                    obj_id, R, t, camera_large.K, camera_large.width, camera_large.height
-                )
-            else:
-                large = backend.render_object_depth(name, camera_large)
-            visib.append(instance_visibility(depth_saved, large, K, delta=settings.delta_mm))
-        keep = visib[0].info.visib_fract >= settings.min_visib
-        if keep:
-            _write_frame(unit, k, frame, depth_units, visib)
-            if T_world_cam_r is not None:
-                right = backend.render(_camera(settings, T_world_cam_r), light)
-                save_rgb(unit.scene_dir / "rgb_right" / f"{k:06d}.{settings.rgb_format}", right.rgb)
-            files.camera[k] = CameraInfo(
-                K=K,
-                depth_scale=settings.depth_scale,
-                R_w2c=np.linalg.inv(T_world_cam)[:3, :3],
-                t_w2c=np.linalg.inv(T_world_cam)[:3, 3] * 1000.0,
-            )
-            files.gt[k] = [
-                GtPose(obj_id=obj_id, R=R, t=t)
-                for (_, obj_id), (R, t) in zip(objects, poses, strict=True)
-            ]
-            files.gt_info[k] = [v.info for v in visib]
+        keep = _keep_frame(unit, k, frame, large, backend, view, files, objects, poses)
         files.record["next_frame"] = k + 1
         if keep or k == len(times) - 1:
             files.save()
@@ -355,7 +361,51 @@ def run_replay(
     return ReplayResult(unit.scene_id, rendered, len(files.gt))
 
 
-def _write_frame(unit: ReplayUnit, k: int, frame, depth_units: np.ndarray, visib: list) -> None:
+def _keep_frame(
+    unit: ReplayUnit,
+    k: int,
+    frame: RenderedFrame,
+    large: list[np.ndarray],
+    backend: RenderBackend,
+    view: _View,
+    files: _SceneFiles,
+    objects: list[tuple[str, int]],
+    poses: list[tuple[np.ndarray, np.ndarray]],
+) -> bool:
+    """Write frame ``k`` and its annotations if the needle is visible enough; True if kept."""
+    settings = unit.settings
+    K = np.array(settings.K, dtype=np.float64)
+    # The depth as it will be read back from the PNG: visibility is computed on it.
+    depth_units = np.rint(frame.depth / settings.depth_scale)
+    depth_saved = depth_units * settings.depth_scale
+    visib = [instance_visibility(depth_saved, d, K, delta=settings.delta_mm) for d in large]
+    if visib[0].info.visib_fract < settings.min_visib:
+        return False
+    _write_frame(unit, k, frame, depth_units, visib)
+    if view.right is not None:
+        right = backend.render(view.right, view.light)
+        save_rgb(unit.scene_dir / "rgb_right" / f"{k:06d}.{settings.rgb_format}", right.rgb)
+    T_cam_world = np.linalg.inv(view.T_world_cam)
+    files.camera[k] = CameraInfo(
+        K=K,
+        depth_scale=settings.depth_scale,
+        R_w2c=T_cam_world[:3, :3],
+        t_w2c=T_cam_world[:3, 3] * 1000.0,
+    )
+    files.gt[k] = [
+        GtPose(obj_id=obj_id, R=R, t=t) for (_, obj_id), (R, t) in zip(objects, poses, strict=True)
+    ]
+    files.gt_info[k] = [v.info for v in visib]
+    return True
+
+
+def _write_frame(
+    unit: ReplayUnit,
+    k: int,
+    frame: RenderedFrame,
+    depth_units: np.ndarray,
+    visib: list[InstanceVisibility],
+) -> None:
     """Images of one kept frame: rgb, depth, and mask/mask_visib per GT instance."""
     d = unit.scene_dir
     save_rgb(d / "rgb" / f"{k:06d}.{unit.settings.rgb_format}", frame.rgb)

@@ -1,7 +1,7 @@
 """Synthetic suturing episodes: two dVRK PSMs pass a curved needle through tissue.
 
 :func:`synthesize_suturing` plays an operator through one or two *throws* of a running
-suture and returns a :class:`~bopsurg.generators.bags.Recording` (joints of both PSMs, jaws,
+suture and returns a :class:`~bopsurg.generators.recording.Recording` (joints of both PSMs, jaws,
 ECM joints and the needle pose at a fixed rate), ready for
 :func:`~bopsurg.generators.bags.write_bag`. Everything random comes from
 ``numpy.random.default_rng(seed)``: the same seed gives the same arrays.
@@ -41,7 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from bopsurg._version import __version__
 from bopsurg.errors import InputError
-from bopsurg.generators.bags import Recording
+from bopsurg.generators.backend import ARMS, DEFAULT_ECM_JOINTS
 from bopsurg.generators.ik import psm_ik_solve
 from bopsurg.generators.kinematics import (
     DEFAULT_LAYOUT,
@@ -54,17 +54,15 @@ from bopsurg.generators.kinematics import (
     psm_tip_pose,
     rot_z,
 )
+from bopsurg.generators.recording import Recording
 from bopsurg.needle import NeedleSpec
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
-ARMS = ("psm1", "psm2")
 #: A jaw at or below this opening (rad) holds the needle (the AMBF simulator's rule).
 GRASP_JAW_THRESHOLD = 0.2
-#: Base pose of the endoscope joints: yaw, pitch (rad), insertion (m), roll (rad).
-ECM_BASE_JOINTS = np.zeros(4)
 #: Physiological tremor band (Hz) and RMS amplitude range (m).
 TREMOR_HZ = (8.0, 12.0)
 TREMOR_RMS = (0.05e-3, 0.1e-3)
@@ -493,20 +491,32 @@ class _Episode:
     throws: int
 
 
-def _plan_episode(
-    seed: int,
-    n_throws: int,
-    tempo: float,
-    layout: SceneLayout,
-    needle: NeedleSpec,
-    *,
-    check_reach: bool = True,
-) -> _Episode:
-    """The operator's plan. The random draws do not depend on ``tempo`` or ``n_throws``."""
-    rng = np.random.default_rng(seed).spawn(3)[0]
-    centre = np.asarray(layout.workspace_centre, dtype=np.float64)
+@dataclass
+class _Setup:
+    """The drawn geometry of an episode, before any timing.
 
-    # Everything geometric is drawn first, in a fixed order.
+    Attributes:
+        start_q: Each arm's joints at the start (wrist hovering beside the wound).
+        home: Each arm's tip pose at the start, where it returns to, world, m.
+        idle_jaw: Each arm's jaw opening at rest, rad.
+        throws: The throws, in order.
+        T_rest: The needle lying flat on the tissue beside the wound.
+        T_lifted: The needle just picked up, above ``T_rest``.
+    """
+
+    start_q: dict[str, F64]
+    home: dict[str, F64]
+    idle_jaw: dict[str, float]
+    throws: list[_Throw]
+    T_rest: F64
+    T_lifted: F64
+
+
+def _draw_setup(
+    rng: np.random.Generator, layout: SceneLayout, needle: NeedleSpec, n_throws: int
+) -> _Setup:
+    """Everything geometric, drawn first and in a fixed order (timing draws come after)."""
+    centre = np.asarray(layout.workspace_centre, dtype=np.float64)
     start_q, home = {}, {}
     for i, (arm, side) in enumerate(zip(ARMS, (1.0, -1.0), strict=True)):
         hover = centre + np.array([0.022 * side, -0.006, 0.028]) + rng.normal(0.0, 0.003, 3)
@@ -523,69 +533,99 @@ def _plan_episode(
     rest_at[2] += needle.wire_diameter / 2 * _MM
     T_rest = pose(spin @ lay_flat @ first.T_pre[:3, :3], rest_at)
     T_lifted = _translated(T_rest, [0.0, 0.0, rng.uniform(10, 15) * _MM])
+    return _Setup(start_q, home, idle_jaw, throws, T_rest, T_lifted)
 
-    def arc_poses(th: _Throw, a: float, b: float) -> list[F64]:
-        return [th.stitch.needle_pose(phi) for phi in np.linspace(a, b, 12)]
 
-    def lifted(th: _Throw) -> F64:
-        return _translated(th.stitch.needle_pose(th.phi_pull), th.lift)
+def _arc_poses(th: _Throw, a: float, b: float) -> list[F64]:
+    return [th.stitch.needle_pose(phi) for phi in np.linspace(a, b, 12)]
 
-    def approach_route(T_tn: F64, T_needle: F64, back: float) -> list[F64]:
-        T = T_needle @ np.linalg.inv(T_tn)
-        return [_translated(T, -back * T[:3, 2]), T]
 
-    def away_route(arm: str, T_tn: F64, T_needle: F64, back: float) -> list[F64]:
-        T = T_needle @ np.linalg.inv(T_tn)
-        return [T, _translated(T, -back * T[:3, 2] + [0, 0, 0.4 * back]), home[arm]]
+def _lifted(th: _Throw) -> F64:
+    """The needle after the pull, lifted to tighten the thread."""
+    return _translated(th.stitch.needle_pose(th.phi_pull), th.lift)
 
-    # Grasp offsets, spun so that each hold's whole route stays reachable.
-    T_tn1, T_tn2 = [], []
-    for k, th in enumerate(throws):
-        if k == 0:
-            needle_path = [T_rest, T_lifted, th.T_high, *arc_poses(th, th.phi_pre, th.phi_end)]
-        else:
-            needle_path = [th.T_high, *arc_poses(th, th.phi_pre, th.phi_end)]
 
-        def route1(T_tn: F64, th: _Throw = th, path: list[F64] = needle_path) -> list[F64]:
+def _tip(T_needle: F64, T_tn: F64) -> F64:
+    """The tool tip holding the needle at ``T_needle`` with grasp offset ``T_tn``."""
+    return T_needle @ np.linalg.inv(T_tn)
+
+
+def _approach_route(T_tn: F64, T_needle: F64, back: float) -> list[F64]:
+    T = _tip(T_needle, T_tn)
+    return [_translated(T, -back * T[:3, 2]), T]
+
+
+def _away_route(home: F64, T_tn: F64, T_needle: F64, back: float) -> list[F64]:
+    T = _tip(T_needle, T_tn)
+    return [T, _translated(T, -back * T[:3, 2] + [0, 0, 0.4 * back]), home]
+
+
+def _hold_route(home: F64, T_tn: F64, needle_path: list[F64], back_in: float) -> list[F64]:
+    """Tip poses from home, along a needle path held with ``T_tn`` (not the way back)."""
+    poses = [home, *_approach_route(T_tn, needle_path[0], back_in)]
+    return poses + [_tip(T, T_tn) for T in needle_path[1:]]
+
+
+def _psm1_path(setup: _Setup, k: int) -> list[F64]:
+    """The needle poses while PSM1 holds it in throw ``k`` (from pick-up or hand-back)."""
+    th = setup.throws[k]
+    start = [setup.T_rest, setup.T_lifted] if k == 0 else []
+    return [*start, th.T_high, *_arc_poses(th, th.phi_pre, th.phi_end)]
+
+
+def _psm2_path(setup: _Setup, k: int) -> list[F64]:
+    """The needle poses while PSM2 holds it in throw ``k`` (pull, lift, next presentation)."""
+    th = setup.throws[k]
+    path = [*_arc_poses(th, th.phi_end, th.phi_pull), _lifted(th)]
+    if k + 1 < len(setup.throws):
+        path.append(setup.throws[k + 1].T_high)
+    return path
+
+
+def _grasp_offsets(
+    setup: _Setup, layout: SceneLayout, needle: NeedleSpec, check_reach: bool
+) -> tuple[list[F64], list[F64]]:
+    """PSM1's and PSM2's grasp offsets per throw, spun so each hold's route stays reachable."""
+    T_tn1: list[F64] = []
+    T_tn2: list[F64] = []
+    home1, home2 = setup.home["psm1"], setup.home["psm2"]
+    for k, th in enumerate(setup.throws):
+        if not check_reach:
+            for T_tn, (s_deg, tilt, depth), approach in (
+                (T_tn1, th.grasp1, -1),
+                (T_tn2, th.grasp2, 1),
+            ):
+                T_tn.append(
+                    needle_grasp(needle, s_deg, approach=approach, tilt_deg=tilt, depth_mm=depth)
+                )
+            continue
+        path1, path2 = _psm1_path(setup, k), _psm2_path(setup, k)
+        nxt = setup.throws[k + 1] if k + 1 < len(setup.throws) else None
+
+        def route1(T_tn: F64, th: _Throw = th, path: list[F64] = path1) -> list[F64]:
             return [
-                home["psm1"],
-                *approach_route(T_tn, path[0], th.backs[0]),
-                *[T @ np.linalg.inv(T_tn) for T in path[1:]],
-                *away_route("psm1", T_tn, path[-1], th.backs[1]),
+                *_hold_route(home1, T_tn, path, th.backs[0]),
+                *_away_route(home1, T_tn, path[-1], th.backs[1]),
             ]
 
-        def route2(T_tn: F64, k: int = k, th: _Throw = th) -> list[F64]:
-            path = [*arc_poses(th, th.phi_end, th.phi_pull), lifted(th)]
-            if k + 1 < len(throws):
-                path.append(throws[k + 1].T_high)
-            poses = [home["psm2"], *approach_route(T_tn, path[0], th.backs[2])]
-            poses += [T @ np.linalg.inv(T_tn) for T in path[1:]]
-            if k + 1 < len(throws):
-                poses += away_route("psm2", T_tn, path[-1], throws[k + 1].backs[3])
+        def route2(
+            T_tn: F64, th: _Throw = th, path: list[F64] = path2, nxt: _Throw | None = nxt
+        ) -> list[F64]:
+            poses = _hold_route(home2, T_tn, path, th.backs[2])
+            if nxt is not None:
+                poses += _away_route(home2, T_tn, path[-1], nxt.backs[3])
             return poses
 
-        if check_reach:
-            T_tn1.append(_pick_grasp(needle, th.grasp1, -1, layout, 0, start_q["psm1"], route1))
-            T_tn2.append(_pick_grasp(needle, th.grasp2, 1, layout, 1, start_q["psm2"], route2))
-        else:
-            T_tn1.append(
-                needle_grasp(
-                    needle, th.grasp1[0], approach=-1, tilt_deg=th.grasp1[1], depth_mm=th.grasp1[2]
-                )
-            )
-            T_tn2.append(
-                needle_grasp(
-                    needle, th.grasp2[0], approach=1, tilt_deg=th.grasp2[1], depth_mm=th.grasp2[2]
-                )
-            )
+        T_tn1.append(_pick_grasp(needle, th.grasp1, -1, layout, 0, setup.start_q["psm1"], route1))
+        T_tn2.append(_pick_grasp(needle, th.grasp2, 1, layout, 1, setup.start_q["psm2"], route2))
+    return T_tn1, T_tn2
 
-    # Timing: segment durations and pauses are drawn from here on.
-    P = _Planner(rng, tempo, T_rest, home, idle_jaw)
-    P.pause(0.5, 1.5)
 
-    # Pick the needle up with PSM1 and bring it above the entry point.
+def _pick_up(P: _Planner, setup: _Setup, T_tn: F64) -> None:
+    """PSM1 picks the needle up and brings it above the first entry point."""
+    first = setup.throws[0]
     t0 = P.t
-    T_grasp = T_rest @ np.linalg.inv(T_tn1[0])
+    T_grasp = _tip(setup.T_rest, T_tn)
     T_above = _translated(T_grasp, -first.backs[0] * T_grasp[:3, 2])
     t_end = P.tip_to("psm1", T_above, 2.0)
     P.jaw_to("psm1", first.jaw_open[0], 0.6, at=P.t + 0.3 * (t_end - P.t))
@@ -593,69 +633,102 @@ def _plan_episode(
     P.pause(0.2, 0.8, p=0.5)
     P.t = P.tip_to("psm1", T_grasp, 0.9)
     P.pause(0.1, 0.3)
-    P.grasp("psm1", T_tn1[0])
+    P.grasp("psm1", T_tn)
     P.event("psm1 grasps the needle", t0)
     P.pause(0.15, 0.4)
     t0 = P.t
-    P.needle_line(T_lifted, 0.8)
+    P.needle_line(setup.T_lifted, 0.8)
     P.needle_line(first.T_high, 2.0)
     P.event("psm1 brings the needle to the entry point", t0)
 
-    for k, th in enumerate(throws):
-        T_tn_1, T_tn_2 = T_tn1[k], T_tn2[k]
-        if k > 0:
-            # Hand-back: PSM2 presents the needle above the next entry point, PSM1 takes it.
-            t0 = P.t
-            T_grasp = th.T_high @ np.linalg.inv(T_tn_1)
-            T_above = _translated(T_grasp, -th.backs[0] * T_grasp[:3, 2])
-            t_end = P.tip_to("psm1", T_above, 1.5, at=t0 + 0.3 * P.tempo)  # meanwhile
-            P.needle_line(th.T_high, 2.0)
-            P.jaw_to("psm1", th.jaw_open[0], 0.5, at=t_end - 0.6 * P.tempo)
-            P.t = max(P.t, t_end)
-            P.t = P.tip_to("psm1", T_grasp, 0.7)
-            P.grasp("psm1", T_tn_1)
-            P.pause(0.2, 0.5)
-            P.release("psm2")
-            P.event("hand-back: psm2 gives the needle to psm1", t0)
-            P.retract("psm2", th.backs[3])
-        t0 = P.t
-        P.pause(0.1, 0.6, p=0.6)
-        P.needle_line(th.T_pre, 0.8)
-        P.pause(0.2, 0.6)
-        # Drive: turn the needle about its arc centre axis, in a few pushes.
-        total = th.phi_end - th.phi_pre
-        pushes = rng.dirichlet([3.0] * int(rng.integers(2, 4))) * total
+
+def _hand_back(P: _Planner, th: _Throw, T_tn: F64) -> None:
+    """PSM2 presents the needle above the next entry point, PSM1 takes it, PSM2 retracts."""
+    t0 = P.t
+    T_grasp = _tip(th.T_high, T_tn)
+    T_above = _translated(T_grasp, -th.backs[0] * T_grasp[:3, 2])
+    t_end = P.tip_to("psm1", T_above, 1.5, at=t0 + 0.3 * P.tempo)  # meanwhile
+    P.needle_line(th.T_high, 2.0)
+    P.jaw_to("psm1", th.jaw_open[0], 0.5, at=t_end - 0.6 * P.tempo)
+    P.t = max(P.t, t_end)
+    P.t = P.tip_to("psm1", T_grasp, 0.7)
+    P.grasp("psm1", T_tn)
+    P.pause(0.2, 0.5)
+    P.release("psm2")
+    P.event("hand-back: psm2 gives the needle to psm1", t0)
+    P.retract("psm2", th.backs[3])
+
+
+def _drive(P: _Planner, th: _Throw, k: int) -> float:
+    """PSM1 turns the needle about its arc centre axis, in a few pushes; returns the last
+    push's start time."""
+    t0 = P.t
+    P.pause(0.1, 0.6, p=0.6)
+    P.needle_line(th.T_pre, 0.8)
+    P.pause(0.2, 0.6)
+    total = th.phi_end - th.phi_pre
+    pushes = P.rng.dirichlet([3.0] * int(P.rng.integers(2, 4))) * total
+    t_last = P.t
+    for j, angle in enumerate(pushes):
         t_last = P.t
-        for j, angle in enumerate(pushes):
-            t_last = P.t
-            P.needle_arc(th.stitch.centre, th.stitch.x, angle, 3.2 * angle / total)
-            if j < len(pushes) - 1:
-                P.pause(0.1, 0.4)
-        P.event(f"throw {k + 1}: psm1 drives the needle through the tissue", t0)
+        P.needle_arc(th.stitch.centre, th.stitch.x, angle, 3.2 * angle / total)
+        if j < len(pushes) - 1:
+            P.pause(0.1, 0.4)
+    P.event(f"throw {k + 1}: psm1 drives the needle through the tissue", t0)
+    return t_last
 
-        # Hand-off: PSM2 grasps the emerged tip side, PSM1 lets go.
-        t0 = P.t
-        T_grasp2 = th.stitch.needle_pose(th.phi_end) @ np.linalg.inv(T_tn_2)
-        T_near = _translated(T_grasp2, -th.backs[2] * T_grasp2[:3, 2])
-        t_end = P.tip_to("psm2", T_near, 2.0, at=max(t_last, P.t - 2.0 * P.tempo))
-        P.jaw_to("psm2", th.jaw_open[1], 0.5, at=t_end - 0.6 * P.tempo)
-        P.t = max(P.t, t_end)
-        P.pause(0.1, 0.5, p=0.5)
-        P.t = P.tip_to("psm2", T_grasp2, 0.7)
-        P.grasp("psm2", T_tn_2)
-        P.pause(0.2, 0.5)
-        P.release("psm1")
-        P.event(f"throw {k + 1}: hand-off from psm1 to psm2", t0)
-        P.retract("psm1", th.backs[1])
 
-        # Pull through along the arc until the tail is out, then lift the thread.
-        t0 = P.t
-        P.pause(0.1, 0.3)
-        P.needle_arc(th.stitch.centre, th.stitch.x, th.phi_pull - th.phi_end, 2.5)
-        P.needle_line(lifted(th), 1.5)
-        P.event(f"throw {k + 1}: psm2 pulls the needle through", t0)
-        P.pause(0.2, 0.8)
-    return _Episode(P, start_q, n_throws)
+def _hand_off(P: _Planner, th: _Throw, T_tn: F64, t_last: float, k: int) -> None:
+    """PSM2 grasps the emerged tip side (moving in during the last push), PSM1 lets go."""
+    t0 = P.t
+    T_grasp = _tip(th.stitch.needle_pose(th.phi_end), T_tn)
+    T_near = _translated(T_grasp, -th.backs[2] * T_grasp[:3, 2])
+    t_end = P.tip_to("psm2", T_near, 2.0, at=max(t_last, P.t - 2.0 * P.tempo))
+    P.jaw_to("psm2", th.jaw_open[1], 0.5, at=t_end - 0.6 * P.tempo)
+    P.t = max(P.t, t_end)
+    P.pause(0.1, 0.5, p=0.5)
+    P.t = P.tip_to("psm2", T_grasp, 0.7)
+    P.grasp("psm2", T_tn)
+    P.pause(0.2, 0.5)
+    P.release("psm1")
+    P.event(f"throw {k + 1}: hand-off from psm1 to psm2", t0)
+    P.retract("psm1", th.backs[1])
+
+
+def _pull_through(P: _Planner, th: _Throw, k: int) -> None:
+    """PSM2 pulls along the arc until the tail is out, then lifts the thread."""
+    t0 = P.t
+    P.pause(0.1, 0.3)
+    P.needle_arc(th.stitch.centre, th.stitch.x, th.phi_pull - th.phi_end, 2.5)
+    P.needle_line(_lifted(th), 1.5)
+    P.event(f"throw {k + 1}: psm2 pulls the needle through", t0)
+    P.pause(0.2, 0.8)
+
+
+def _plan_episode(
+    seed: int,
+    n_throws: int,
+    tempo: float,
+    layout: SceneLayout,
+    needle: NeedleSpec,
+    *,
+    check_reach: bool = True,
+) -> _Episode:
+    """The operator's plan. The random draws do not depend on ``tempo`` or ``n_throws``."""
+    rng = np.random.default_rng(seed).spawn(3)[0]
+    setup = _draw_setup(rng, layout, needle, n_throws)
+    T_tn1, T_tn2 = _grasp_offsets(setup, layout, needle, check_reach)
+    # Timing: segment durations and pauses are drawn from here on.
+    P = _Planner(rng, tempo, setup.T_rest, setup.home, setup.idle_jaw)
+    P.pause(0.5, 1.5)
+    _pick_up(P, setup, T_tn1[0])
+    for k, th in enumerate(setup.throws):
+        if k > 0:
+            _hand_back(P, th, T_tn1[k])
+        t_last = _drive(P, th, k)
+        _hand_off(P, th, T_tn2[k], t_last, k)
+        _pull_through(P, th, k)
+    return _Episode(P, setup.start_q, n_throws)
 
 
 def _tremor(rng: np.random.Generator, times: F64) -> F64:
@@ -674,7 +747,7 @@ def _tremor(rng: np.random.Generator, times: F64) -> F64:
 
 def _ecm_track(rng: np.random.Generator, duration: float) -> _Track:
     """ECM joints: the base pose, adjusted by the operator now and then (0–2 times)."""
-    base = ECM_BASE_JOINTS + rng.uniform(-1, 1, 4) * np.array([0.02, 0.02, 0.002, 0.03])
+    base = DEFAULT_ECM_JOINTS + rng.uniform(-1, 1, 4) * np.array([0.02, 0.02, 0.002, 0.03])
     track = _Track(base)
     n = int(rng.integers(0, 3))
     starts = np.sort(rng.uniform(0.1, 0.85, n)) * duration

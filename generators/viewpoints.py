@@ -98,9 +98,9 @@ def draw_replay(
     color = np.array([1.0, 0.5 * (1.0 + warm), warm])  # from warm (halogen) to neutral white
     return ReplayDraw(
         base_index=base_index,
-        ecm_joints=tuple(float(x) for x in joints),  # type: ignore[arg-type]
-        light_direction_cam=tuple(float(x) for x in d),  # type: ignore[arg-type]
-        light_color=tuple(float(x) for x in color),  # type: ignore[arg-type]
+        ecm_joints=(float(joints[0]), float(joints[1]), float(joints[2]), float(joints[3])),
+        light_direction_cam=(float(d[0]), float(d[1]), float(d[2])),
+        light_color=(float(color[0]), float(color[1]), float(color[2])),
         ambient=float(rng.uniform(*r.ambient)),
         diffuse=float(rng.uniform(*r.diffuse)),
         specular=float(rng.uniform(*r.specular)),

@@ -33,6 +33,14 @@ def load_dataset_and_results(args: argparse.Namespace) -> tuple[BopDataset, Pose
     return dataset, est
 
 
+def key_value(text: str) -> tuple[str, str]:
+    """argparse type of a ``KEY=VALUE`` option (``--option``, ``--backend-option``)."""
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    return key, value
+
+
 def add_executor_args(p: argparse.ArgumentParser, *, unit: str) -> None:
     """``--executor local|ray --workers N --ray-address ADDR`` (see bopsurg.executors)."""
     p.add_argument(

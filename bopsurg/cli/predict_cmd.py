@@ -7,6 +7,7 @@ import logging
 from typing import TYPE_CHECKING
 
 from bopsurg.cli.commands import help_of
+from bopsurg.cli.inputs import key_value
 from bopsurg.errors import BopsurgError
 
 if TYPE_CHECKING:
@@ -42,13 +43,6 @@ examples:
 """
 
 
-def _option(text: str) -> tuple[str, str]:
-    key, sep, value = text.partition("=")
-    if not sep or not key:
-        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
-    return key, value
-
-
 def register(sub: Subparsers) -> None:
     """Add the subcommand."""
     p = sub.add_parser(
@@ -70,7 +64,7 @@ def register(sub: Subparsers) -> None:
     )
     p.add_argument(
         "--option",
-        type=_option,
+        type=key_value,
         action="append",
         default=[],
         metavar="KEY=VALUE",

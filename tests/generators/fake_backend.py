@@ -12,7 +12,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from bopsurg.bop.models import ObjectModel
-from bopsurg.generators.backend import CameraSpec, LightSpec, RenderedFrame, SceneState
+from bopsurg.generators.backend import (
+    CameraSpec,
+    LightSpec,
+    RenderedFrame,
+    SceneSpec,
+    SceneState,
+)
 from bopsurg.generators.kinematics import pose
 
 HALF = 12  # patch half size, px
@@ -24,8 +30,8 @@ class FakeBackend:
     def __init__(self) -> None:
         self.state: SceneState | None = None
 
-    def load_scene(self, config: dict) -> None:
-        self.config = config
+    def load_scene(self, scene: SceneSpec) -> None:
+        self.scene = scene
 
     def annotated_objects(self) -> list[tuple[str, int]]:
         return [("needle", 1)]

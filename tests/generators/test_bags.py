@@ -18,11 +18,9 @@ from scipy.spatial.transform import Rotation
 
 from bopsurg.errors import InputError
 from bopsurg.generators import cli_record
+from bopsurg.generators.backend import DEFAULT_ECM_JOINTS, DEFAULT_NEEDLE_POSE, PARKED_PSM_JOINTS
 from bopsurg.generators.bags import (
-    DEFAULT_ECM_JOINTS,
-    DEFAULT_NEEDLE_POSE,
     DEFAULT_TIME_ORIGIN_NS,
-    PARKED_PSM_JOINTS,
     TOPIC_MAP_DIR,
     BagError,
     Recording,

@@ -20,10 +20,13 @@ pytest.importorskip("rtree")
 from bopsurg.bop.models import ObjectModel
 from bopsurg.generators import pybullet_scene as ps
 from bopsurg.generators.backend import (
+    DEFAULT_ECM_JOINTS,
     CameraSpec,
     LightSpec,
     RenderBackend,
+    SceneSpec,
     SceneState,
+    default_state,
 )
 from bopsurg.generators.kinematics import (
     DEFAULT_LAYOUT,
@@ -35,11 +38,13 @@ from bopsurg.generators.kinematics import (
     rot_z,
 )
 from bopsurg.generators.pybullet_backend import (
-    CONFIG_KEYS,
+    OPTION_KEYS,
     PyBulletBackend,
+    PyBulletOptions,
     depth_buffer_to_mm,
     render_window,
 )
+from bopsurg.needle import NeedleSpec
 from bopsurg.plugins import load_plugin
 
 from .test_depth_renderer import K_ODD, K_SIM, H, W, compare, raycast
@@ -52,6 +57,8 @@ IN_VIEW = {
     "psm2": np.array([-0.10, 0.05, 0.125, -0.2, -0.3, 0.25]),
 }
 JAWS = {"psm1": 0.0, "psm2": 0.6}
+#: Both tools straight above the pad's centre, 12 cm inserted.
+ABOVE_PAD = {arm: np.array([0.0, 0.0, 0.12, 0.0, 0.0, 0.0]) for arm in ("psm1", "psm2")}
 
 
 def state(needle: np.ndarray, joints: dict[str, np.ndarray] | None = None, jaws=None) -> SceneState:
@@ -84,7 +91,7 @@ def reference(backend: PyBulletBackend, cam: CameraSpec, name: str = "needle"):
 @pytest.fixture(scope="module")
 def scene():
     with PyBulletBackend() as backend:
-        backend.load_scene({"annotate_instruments": True})
+        backend.load_scene(SceneSpec(annotate_instruments=True))
         yield backend
 
 
@@ -93,7 +100,7 @@ def scene():
 
 def test_protocol_entry_point_and_objects(scene):
     assert isinstance(scene, RenderBackend)
-    assert load_plugin("generator", "pybullet") is PyBulletBackend
+    assert load_plugin("backend", "pybullet") is PyBulletBackend
     names = [n for n, _ in scene.annotated_objects()]
     assert names == [
         "needle",
@@ -119,14 +126,21 @@ def test_protocol_entry_point_and_objects(scene):
 
 
 def test_config_and_lifecycle():
-    with PyBulletBackend() as backend:
+    with pytest.raises(ValueError, match="'colour'"):
+        PyBulletBackend({"colour": "red"})
+    with pytest.raises(ValueError, match="renderer"):
+        PyBulletBackend({"renderer": "cycles"})
+    with pytest.raises(ValueError, match="texture_seed"):
+        PyBulletBackend({"texture_seed": "three"})
+    with pytest.raises(ValueError, match="light_distance"):
+        PyBulletBackend({"light_distance": "-1"})
+    assert PyBulletBackend({"texture_seed": "3", "light_distance": "0.25"}).options == (
+        PyBulletOptions(renderer="tiny", texture_seed=3, light_distance=0.25)
+    )
+    with PyBulletBackend({"texture_seed": 3}) as backend:
         with pytest.raises(RuntimeError, match="load_scene"):
             backend.annotated_objects()
-        with pytest.raises(ValueError, match="'colour'"):
-            backend.load_scene({"colour": "red"})
-        with pytest.raises(ValueError, match="renderer"):
-            backend.load_scene({"renderer": "cycles"})
-        backend.load_scene({"needle": {"arc_radius": 12.0}, "texture_seed": 3})
+        backend.load_scene(SceneSpec(needle=NeedleSpec(arc_radius=12.0)))
         assert backend.annotated_objects() == [("needle", 1)]
         radius = np.linalg.norm(backend.object_model("needle").pts[:, :2], axis=1)
         assert radius.max() == pytest.approx(12.0 + 0.36 * 1.15, abs=0.05)
@@ -135,13 +149,28 @@ def test_config_and_lifecycle():
     backend.close()  # idempotent
     with pytest.raises(RuntimeError):
         backend.render(camera(np.eye(4)), LightSpec())
-    assert set(CONFIG_KEYS) >= {"layout", "needle", "annotate_instruments", "renderer"}
+    assert set(OPTION_KEYS) == {"renderer", "texture_seed", "light_distance"}
 
 
-def test_default_scene_shows_everything(scene):
-    """Before any set_state, the default ECM view shows tissue, needle and both tools."""
+def test_default_scene_is_the_default_state(scene):
+    """Before any set_state, the scene shows default_state(): the same pixels as after it."""
     with PyBulletBackend() as fresh:
-        fresh.load_scene({"annotate_instruments": True})
+        fresh.load_scene(SceneSpec(annotate_instruments=True))
+        cam = camera(ecm_camera_pose(DEFAULT_ECM_JOINTS))
+        before = fresh.render(cam, LightSpec())
+        fresh.set_state(default_state())
+        after = fresh.render(cam, LightSpec())
+    np.testing.assert_array_equal(before.instance, after.instance)
+    np.testing.assert_array_equal(before.depth, after.depth)
+    assert (before.instance == 1).sum() > 50  # the needle lies in view
+
+
+def test_default_ecm_view_shows_everything(scene):
+    """The default ECM view of tools in reach shows tissue, needle and both tools."""
+    with PyBulletBackend() as fresh:
+        fresh.load_scene(SceneSpec(annotate_instruments=True))
+        jaws = {"psm1": 0.3, "psm2": 0.3}
+        fresh.set_state(state(pose(np.eye(3), [0.0, 0.0, 0.004]), ABOVE_PAD, jaws))
         frame = fresh.render(camera(ecm_camera_pose(np.zeros(4))), LightSpec())
     assert frame.rgb.shape == (H, W, 3)
     assert frame.rgb.dtype == np.uint8
@@ -359,7 +388,7 @@ def test_two_backends_are_independent(scene):
     cam = camera(look_at([0.0, -0.03, 0.08], [0.0, 0.0, 0.0]))
     scene.set_state(state(pose(np.eye(3), [0.01, 0.0, 0.01])))
     with PyBulletBackend() as other:
-        other.load_scene({})
+        other.load_scene(SceneSpec())
         other.set_state(state(pose(np.eye(3), [-0.01, 0.0, 0.01])))
         mine = scene.render(cam, LightSpec()).instance == 1
         theirs = other.render(cam, LightSpec()).instance == 1
@@ -371,9 +400,9 @@ def test_two_backends_are_independent(scene):
 
 def test_egl_renderer(capfd):
     """The EGL plugin (if it loads): same geometry within µm, and stdout stays clean."""
-    backend = PyBulletBackend()
+    backend = PyBulletBackend({"renderer": "egl"})
     try:
-        backend.load_scene({"renderer": "egl"})
+        backend.load_scene(SceneSpec())
     except RuntimeError as err:
         pytest.skip(f"EGL not available: {err}")
     try:
@@ -390,14 +419,17 @@ def test_egl_renderer(capfd):
         alone = backend.render_object_depth("needle", cam)  # TinyRenderer solo client
         assert ((alone > 0) ^ (frame.instance == 1)).sum() <= 0.02 * ref.mask.sum() + 2
         # pybullet's EGL plugin holds one scene per process: a second user is refused.
-        with PyBulletBackend() as other, pytest.raises(RuntimeError, match="EGL"):
-            other.load_scene({"renderer": "egl"})
-        backend.load_scene({"renderer": "egl"})  # reloading its own scene is fine
+        with (
+            PyBulletBackend({"renderer": "egl"}) as other,
+            pytest.raises(RuntimeError, match="EGL"),
+        ):
+            other.load_scene(SceneSpec())
+        backend.load_scene(SceneSpec())  # reloading its own scene is fine
         assert (backend.render(cam, LightSpec()).instance == 1).sum() > 0
     finally:
         backend.close()
-    with PyBulletBackend() as after:  # free again once closed
-        after.load_scene({"renderer": "egl"})
+    with PyBulletBackend({"renderer": "egl"}) as after:  # free again once closed
+        after.load_scene(SceneSpec())
     assert capfd.readouterr().out == ""
 
 
