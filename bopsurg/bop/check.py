@@ -32,7 +32,7 @@ from bopsurg.bop.scene import (
     parse_scene_gt,
     parse_scene_gt_info,
 )
-from bopsurg.bop.targets import parse_targets
+from bopsurg.bop.targets import TARGETS_BOP24_FILENAME, parse_image_targets, parse_targets
 from bopsurg.errors import InputError
 from bopsurg.geometry import ROTATION_ATOL, is_rotation
 
@@ -505,6 +505,23 @@ def _check_targets(
         rep.add(path, f"{first}/scene_id", f"scene {sid} is not in the split")
 
 
+def _check_image_targets(root: Path, scenes: dict[int, _SceneSummary], rep: _Report) -> None:
+    """``test_targets_bop24.json`` (if present) names existing scenes and images."""
+    path = root / TARGETS_BOP24_FILENAME
+    content = _load(path, rep, missing=None)
+    if content is None:
+        return
+    issues = Issues(path, collect=True)
+    targets = parse_image_targets(content, issues)
+    rep.issues(issues)
+    for i, t in enumerate(targets):
+        s = scenes.get(t.scene_id)
+        if s is None:
+            rep.add(path, f"{i}/scene_id", f"scene {t.scene_id} is not in the split")
+        elif s.im_ids is not None and t.im_id not in s.im_ids:
+            rep.add(path, f"{i}/im_id", f"scene {t.scene_id} has no image {t.im_id}")
+
+
 # --------------------------------------------------------------------------- entry point
 
 
@@ -530,7 +547,8 @@ def check_dataset(
     ``px_count_visib`` pixels and ``bbox_visib`` as its box, a ``mask`` has between
     ``px_count_valid`` and ``px_count_all`` pixels and contains ``mask_visib``; finally
     ``test_targets_bop19.json`` (if present) names existing scenes, images and objects with
-    ``inst_count`` no larger than the number of GT instances.
+    ``inst_count`` no larger than the number of GT instances, and ``test_targets_bop24.json``
+    (if present) existing scenes and images.
 
     Args:
         root: The dataset folder.
@@ -576,3 +594,4 @@ def _check_all(
         scene = BopScene(sid, split_dir / f"{sid:06d}")
         summaries[sid] = _check_scene(scene, known_obj, expected_size, check_images, rep)
     _check_targets(root, summaries, known_obj, rep)
+    _check_image_targets(root, summaries, rep)

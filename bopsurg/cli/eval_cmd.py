@@ -9,7 +9,7 @@ from pathlib import Path
 
 from bopsurg._version import __version__
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.targets import load_targets
+from bopsurg.bop.targets import load_image_targets, load_targets
 from bopsurg.cli.inputs import (
     add_dataset_and_results,
     add_detections_arg,
@@ -25,6 +25,7 @@ from bopsurg.evaluation.runner import (
     write_evaluation,
 )
 from bopsurg.evaluation.summary import format_table
+from bopsurg.evaluation.tasks import TASK_CHOICES, add_detection_scores, resolve_tasks
 from bopsurg.executors import make_executor
 from bopsurg.plugins import available_plugins, load_plugin
 
@@ -44,7 +45,9 @@ Writes into --out:
                 MSSD < 1/2/5 mm and RE < 5/10 deg, ADD and ADD-S AUC (0-0.1 x diameter)
   scores.json   BOP19 scores with the reference toolkit's keys and rules:
                 bop19_average_recall_mssd, _mspd, and with a depth renderer _vsd and
-                bop19_average_recall; bop19_average_time_per_image; per-threshold details
+                bop19_average_recall; bop19_average_time_per_image; per-threshold details;
+                BOP24/25 6D-detection AP (--task bop24): bop24_mAP_mssd, bop24_mAP_mssd_mm
+                (MSSD 2-20 mm), bop24_mAP_mspd, bop24_mAP, bop25_mAP, bop25_mAP_mm
 
 Matching for errors.csv and the table: in each image, estimates in decreasing score order
 take the not-yet-matched GT instance of their object with the smallest MSSD (no threshold).
@@ -66,6 +69,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--targets",
         default=None,
         help="targets JSON (default: DATASET/test_targets_bop19.json, else enumerated from GT)",
+    )
+    p.add_argument(
+        "--task",
+        choices=TASK_CHOICES,
+        default="all",
+        help="bop19 (6D localization AR), bop24 (6D detection AP, BOP 2023-2025) or all "
+        "(default: every task the results allow)",
+    )
+    p.add_argument(
+        "--targets-bop24",
+        default=None,
+        help="BOP24 targets JSON (default: DATASET/test_targets_bop24.json, else every image "
+        "with GT)",
     )
     p.add_argument(
         "--min-visib",
@@ -134,7 +150,9 @@ def run(args: argparse.Namespace) -> int:
     executor = None
     if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
         executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
+    tasks = resolve_tasks(args.task)
     dataset, est = load_dataset_and_results(args)
+    image_targets = load_image_targets(args.targets_bop24) if args.targets_bop24 else None
     boxes = load_detections_arg(args)  # early: a bad file fails before the evaluation
     targets = load_targets(args.targets) if args.targets else None
     renderer = _renderer(args.renderer, dataset)
@@ -164,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             **options,
         )
+    add_detection_scores(result.scores, tasks, dataset, est, image_targets)
     meta = {
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),

@@ -1,0 +1,61 @@
+"""Which benchmark tasks ``bopsurg eval`` runs, and the BOP24 step added to an evaluation.
+
+Tasks and the inputs they need:
+
+- ``bop19``: 6D localization (AR), a pose results CSV;
+- ``bop24``: 6D detection (AP, BOP 2023-2025), a pose results CSV and the images of
+  ``test_targets_bop24.json`` (every image with GT when the file is absent).
+
+``all`` (or no ``--task``) runs every task the inputs allow.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.results import PoseEstimates
+from bopsurg.bop.targets import ImageTarget
+from bopsurg.errors import BopsurgError
+from bopsurg.evaluation.bop24 import DetectionEvaluation, evaluate_bop24
+
+#: Tasks of a pose results CSV, in report order.
+POSE_TASKS = ("bop19", "bop24")
+#: Every task name ``--task`` accepts.
+TASK_CHOICES = (*POSE_TASKS, "all")
+
+
+def resolve_tasks(choice: str | None, results_kind: str = "pose") -> tuple[str, ...]:
+    """The tasks to run for ``--task choice`` on results of ``results_kind``.
+
+    Raises:
+        BopsurgError: The task does not apply to these results.
+    """
+    allowed = POSE_TASKS if results_kind == "pose" else ()
+    if choice in (None, "all"):
+        return allowed
+    if choice not in allowed:
+        raise BopsurgError(
+            f"--task {choice} needs other results: a {results_kind} results file allows "
+            f"{', '.join(allowed) or 'no task'}"
+        )
+    return (choice,)
+
+
+def add_detection_scores(
+    scores: dict[str, float],
+    tasks: Sequence[str],
+    dataset: BopDataset,
+    estimates: PoseEstimates,
+    image_targets: Sequence[ImageTarget] | None = None,
+) -> DetectionEvaluation | None:
+    """Add the BOP24 keys to ``scores`` when ``bop24`` is a task; drop the BOP19 keys when
+    ``bop19`` is not (the pose evaluation computes them anyway for the paper's table)."""
+    if "bop19" not in tasks:
+        for key in [k for k in scores if k.startswith("bop19_")]:
+            del scores[key]
+    if "bop24" not in tasks:
+        return None
+    det = evaluate_bop24(dataset, estimates, image_targets)
+    scores.update(det.scores)
+    return det
