@@ -10,6 +10,7 @@ from pathlib import Path
 from bopsurg._version import __version__
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.targets import load_image_targets, load_targets
+from bopsurg.cli.eval_coco import run_coco
 from bopsurg.cli.inputs import (
     add_dataset_and_results,
     add_detections_arg,
@@ -18,6 +19,7 @@ from bopsurg.cli.inputs import (
     load_detections_arg,
 )
 from bopsurg.errors import BopsurgError
+from bopsurg.evaluation.coco_eval import is_coco_results
 from bopsurg.evaluation.runner import (
     INSTANCE_METRICS,
     evaluate,
@@ -34,7 +36,9 @@ log = logging.getLogger(__name__)
 HELP = "evaluate a BOP results CSV: errors.csv, the paper's table, BOP19 average recall"
 
 DESCRIPTION = """\
-Evaluate 6D pose estimates (a BOP19 results CSV) on a BOP dataset split.
+Evaluate 6D pose estimates (a BOP19 results CSV) on a BOP dataset split, or 2D detections
+(a BOP COCO results JSON, as 'bopsurg predict --detections-out' writes) with pycocotools:
+the results file is recognised by its content.
 
 Writes into --out:
   errors.csv    one row per estimate: scene_id, im_id, obj_id, gt_id (-1 = no GT left for
@@ -74,8 +78,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--task",
         choices=TASK_CHOICES,
         default="all",
-        help="bop19 (6D localization AR), bop24 (6D detection AP, BOP 2023-2025) or all "
-        "(default: every task the results allow)",
+        help="bop19 (6D localization AR), bop24 (6D detection AP, BOP 2023-2025) for a pose "
+        "CSV; coco-bbox, coco-segm (COCO AP via pycocotools) for a BOP COCO results JSON; "
+        "all (default: every task the results allow)",
     )
     p.add_argument(
         "--targets-bop24",
@@ -150,6 +155,8 @@ def run(args: argparse.Namespace) -> int:
     executor = None
     if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
         executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
+    if is_coco_results(args.results):  # 2D tasks: a COCO JSON, recognised by its content
+        return run_coco(args)
     tasks = resolve_tasks(args.task)
     dataset, est = load_dataset_and_results(args)
     image_targets = load_image_targets(args.targets_bop24) if args.targets_bop24 else None

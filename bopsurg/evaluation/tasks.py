@@ -4,7 +4,9 @@ Tasks and the inputs they need:
 
 - ``bop19``: 6D localization (AR), a pose results CSV;
 - ``bop24``: 6D detection (AP, BOP 2023-2025), a pose results CSV and the images of
-  ``test_targets_bop24.json`` (every image with GT when the file is absent).
+  ``test_targets_bop24.json`` (every image with GT when the file is absent);
+- ``coco-bbox``, ``coco-segm``: 2D detection / segmentation (COCO AP via pycocotools), a BOP
+  COCO results JSON with boxes / RLE masks, and ``scene_gt_coco.json`` in the scenes.
 
 ``all`` (or no ``--task``) runs every task the inputs allow.
 """
@@ -21,17 +23,24 @@ from bopsurg.evaluation.bop24 import DetectionEvaluation, evaluate_bop24
 
 #: Tasks of a pose results CSV, in report order.
 POSE_TASKS = ("bop19", "bop24")
+#: Tasks of a BOP COCO results JSON.
+COCO_TASKS = ("coco-bbox", "coco-segm")
 #: Every task name ``--task`` accepts.
-TASK_CHOICES = (*POSE_TASKS, "all")
+TASK_CHOICES = (*POSE_TASKS, *COCO_TASKS, "all")
 
 
-def resolve_tasks(choice: str | None, results_kind: str = "pose") -> tuple[str, ...]:
-    """The tasks to run for ``--task choice`` on results of ``results_kind``.
+def resolve_tasks(
+    choice: str | None, results_kind: str = "pose", allowed: Sequence[str] | None = None
+) -> tuple[str, ...]:
+    """The tasks to run for ``--task choice`` on results of ``results_kind`` (``"pose"`` or
+    ``"coco"``); ``allowed`` narrows the kind's tasks to what the results contain.
 
     Raises:
         BopsurgError: The task does not apply to these results.
     """
-    allowed = POSE_TASKS if results_kind == "pose" else ()
+    if allowed is None:
+        allowed = POSE_TASKS if results_kind == "pose" else COCO_TASKS
+    allowed = tuple(allowed)
     if choice in (None, "all"):
         return allowed
     if choice not in allowed:
