@@ -11,6 +11,7 @@ from bopsurg._version import __version__
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.targets import load_image_targets, load_targets
 from bopsurg.cli.eval_coco import run_coco
+from bopsurg.cli.eval_stats import add_bootstrap_args, write_intervals
 from bopsurg.cli.inputs import (
     add_dataset_and_results,
     add_detections_arg,
@@ -51,7 +52,9 @@ Writes into --out:
                 bop19_average_recall_mssd, _mspd, and with a depth renderer _vsd and
                 bop19_average_recall; bop19_average_time_per_image; per-threshold details;
                 BOP24/25 6D-detection AP (--task bop24): bop24_mAP_mssd, bop24_mAP_mssd_mm
-                (MSSD 2-20 mm), bop24_mAP_mspd, bop24_mAP, bop25_mAP, bop25_mAP_mm
+                (MSSD 2-20 mm), bop24_mAP_mspd, bop24_mAP, bop25_mAP, bop25_mAP_mm;
+                ci95: their 95 % bootstrap intervals (--bootstrap N, --ci-unit image|scene)
+  bootstrap_bop24.npz  what the intervals are computed from, for 'bopsurg compare'
 
 Matching for errors.csv and the table: in each image, estimates in decreasing score order
 take the not-yet-matched GT instance of their object with the smallest MSSD (no threshold).
@@ -114,6 +117,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also write a rerun recording for visual error analysis (needs bopsurg[rerun])",
     )
     add_detections_arg(p)
+    add_bootstrap_args(p)
     add_executor_args(p, unit="scene")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.set_defaults(func=run)
@@ -189,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             **options,
         )
-    add_detection_scores(result.scores, tasks, dataset, est, image_targets)
+    det = add_detection_scores(result.scores, tasks, dataset, est, image_targets)
     meta = {
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),
@@ -198,6 +202,8 @@ def run(args: argparse.Namespace) -> int:
     }
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
+    if det is not None:  # BOP24 intervals and the samples bopsurg compare reads
+        write_intervals(det, args)
     print(
         f"\nwrote {Path(args.out) / 'errors.csv'}, summary.json, scores.json "
         f"({len(est)} estimates, {time.perf_counter() - t0:.1f} s)"

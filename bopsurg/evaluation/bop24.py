@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -85,6 +86,9 @@ class DetectionCurve:
         obj_ids: Objects with at least one target, ascending.
         ap: (O, T) AP per object and threshold.
         targets_count: (O,) targets (GT instances with ``visib_fract ≥ 0.1``) per object.
+        ranked: Per object and threshold (row-major, O x T), the ranked estimates the AP
+            is computed from: (target-image index, TP flag) of each non-ignored estimate in
+            ranking order; what :mod:`bopsurg.evaluation.bootstrap` resamples.
     """
 
     error_type: str
@@ -92,6 +96,7 @@ class DetectionCurve:
     obj_ids: list[int]
     ap: F64
     targets_count: list[int]
+    ranked: list[tuple[I64, NDArray[np.bool_]]]
 
     @property
     def mean_ap(self) -> float:
@@ -116,6 +121,9 @@ class DetectionInputs:
         gt: The GT table of the target images.
         is_target: (G,) GT instances that count (``visib_fract ≥ 0.1``).
         kept: The estimates after the per-image cap (for the time average).
+        images: (I, 2) ``(scene_id, im_id)`` of the target images, in target order.
+        order_im_pos: (E,) target-image index (into ``images``) of each estimate of ``order``.
+        gt_im_pos: (G,) target-image index of each GT instance (-1 outside the targets).
     """
 
     order: I64
@@ -126,6 +134,9 @@ class DetectionInputs:
     gt: GtTable
     is_target: NDArray[np.bool_]
     kept: PoseEstimates
+    images: I64
+    order_im_pos: I64
+    gt_im_pos: I64
 
 
 def _target_images(
@@ -204,6 +215,8 @@ def prepare(
     is_target = np.zeros(len(gt), dtype=bool)
     in_targets = gdf["g"].to_numpy()
     is_target[in_targets] = gt.visib_fract[in_targets] >= MIN_VISIB
+    gt_im_pos = np.full(len(gt), -1, dtype=np.int64)
+    gt_im_pos[in_targets] = gdf["im_pos"].to_numpy(np.int64)
     return DetectionInputs(
         order=edf["e"].to_numpy(np.int64)[order],
         order_obj_id=edf["obj_id"].to_numpy(np.int64)[order],
@@ -213,6 +226,9 @@ def prepare(
         gt=gt,
         is_target=is_target,
         kept=estimates.subset(kept_rows),
+        images=tdf[["scene_id", "im_id"]].to_numpy(np.int64).reshape(-1, 2),
+        order_im_pos=edf["im_pos"].to_numpy(np.int64)[order],
+        gt_im_pos=gt_im_pos,
     )
 
 
@@ -279,15 +295,17 @@ def detection_curve(
     counts = {int(o): int(np.count_nonzero(target_obj == o)) for o in obj_ids}
     with_targets = [o for o in sorted(obj_ids) if counts[o] > 0]
     ap = np.zeros((len(with_targets), len(thresholds)))
+    ranked: list[tuple[I64, NDArray[np.bool_]]] = [None] * ap.size  # type: ignore[list-item]
     for j, th in enumerate(thresholds):
         tp, ignored = detection_flags(inputs, errors, th)
         for k, obj_id in enumerate(with_targets):
             sel = (inputs.order_obj_id == obj_id) & ~ignored
+            ranked[k * len(thresholds) + j] = (inputs.order_im_pos[sel], tp[sel])
             tp_cum = np.cumsum(tp[sel])
             n = np.arange(1, tp_cum.size + 1)
             ap[k, j] = interpolated_ap(tp_cum / float(counts[obj_id]), tp_cum / n)
     return DetectionCurve(
-        error_type, list(thresholds), with_targets, ap, [counts[o] for o in with_targets]
+        error_type, list(thresholds), with_targets, ap, [counts[o] for o in with_targets], ranked
     )
 
 
@@ -297,6 +315,7 @@ class DetectionEvaluation:
 
     scores: dict[str, float]
     curves: dict[str, DetectionCurve]
+    inputs: DetectionInputs
 
 
 def evaluate_bop24(
@@ -329,14 +348,19 @@ def evaluate_bop24(
     errors = pair_errors(dataset, estimates, inputs, max_sym_disc_step)
     obj_ids = dataset.obj_ids
     curves = {name: detection_curve(inputs, errors[name], name, obj_ids) for name in THRESHOLDS}
-    m = {name: c.mean_ap for name, c in curves.items()}
-    scores = {
-        "bop24_mAP_mssd": m["mssd"],
-        "bop24_mAP_mssd_mm": m["mssd_mm"],
-        "bop24_mAP_mspd": m["mspd"],
-        "bop24_mAP": float(np.mean([m["mssd"], m["mspd"]])),
-        "bop25_mAP": m["mssd"],
-        "bop25_mAP_mm": m["mssd_mm"],
-        "bop24_average_time_per_image": average_time_per_image(inputs.kept),
+    scores = {k: float(v) for k, v in score_keys({n: c.mean_ap for n, c in curves.items()}).items()}
+    scores["bop24_average_time_per_image"] = average_time_per_image(inputs.kept)
+    return DetectionEvaluation(scores, curves, inputs)
+
+
+def score_keys(mean_ap: dict[str, Any]) -> dict[str, Any]:
+    """The reference's keys from the mAP of each error type (floats, or arrays of bootstrap
+    replicates)."""
+    return {
+        "bop24_mAP_mssd": mean_ap["mssd"],
+        "bop24_mAP_mssd_mm": mean_ap["mssd_mm"],
+        "bop24_mAP_mspd": mean_ap["mspd"],
+        "bop24_mAP": (mean_ap["mssd"] + mean_ap["mspd"]) / 2,
+        "bop25_mAP": mean_ap["mssd"],
+        "bop25_mAP_mm": mean_ap["mssd_mm"],
     }
-    return DetectionEvaluation(scores, curves)

@@ -1,0 +1,179 @@
+"""Bootstrap intervals of the BOP24 scores: unit weights give the scores, weights equal
+explicit resampling, seeds reproduce, and the paired comparison."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bopsurg.bop.results import PoseEstimates, save_results
+from bopsurg.cli.main import main
+from bopsurg.errors import BopsurgError
+from bopsurg.evaluation import bop24
+from bopsurg.evaluation.bootstrap import (
+    SAMPLES_FILENAME,
+    DetectionSamples,
+    compare_samples,
+    confidence_intervals,
+    replicate_scores,
+    resample_weights,
+    resampling_units,
+    weighted_ap,
+)
+from tests.bopsurg.evaluation import bop24_oracle
+from tests.bopsurg.evaluation.test_bop24 import KEYS, _hand_dataset
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    ds, est, _ = bop24_oracle.build_case(tmp_path_factory.mktemp("b") / "ds", 0)
+    det = bop24.evaluate_bop24(ds, est)
+    return ds, est, det, DetectionSamples.from_evaluation(det)
+
+
+def test_unit_weights_give_the_scores(case):
+    _, _, det, samples = case
+    reps = replicate_scores(samples, np.ones((3, len(samples.images))))
+    for key in KEYS[:-1]:
+        assert np.all(reps[key] == det.scores[key]), key
+
+
+@pytest.mark.parametrize("seed", range(15))
+def test_weighted_ap_equals_ap_of_the_repeated_ranking(seed):
+    # Drawing an image w times repeats its estimates w times, adjacent in the ranking.
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 25))
+    tp = rng.random(n) < 0.6
+    w = rng.integers(0, 4, n).astype(float)
+    targets = int(tp.sum() + rng.integers(0, 3)) or 1
+    total = float(targets * rng.integers(1, 3))
+    rep_tp = np.repeat(tp, w.astype(int))
+    tp_cum = np.cumsum(rep_tp)
+    expected = bop24.interpolated_ap(tp_cum / total, tp_cum / np.arange(1, rep_tp.size + 1))
+    got = weighted_ap(w[None, :], tp, np.array([total]))[0]
+    assert got == pytest.approx(expected, abs=1e-12)
+
+
+def test_weights_equal_explicit_resampling(case):
+    """A replicate's scores equal evaluating the resampled dataset's images by hand: with
+    the image weights of one replicate, rebuild each ranking by repetition."""
+    _, _, _, samples = case
+    w = resample_weights(resampling_units(samples.images, "image"), 1, seed=3)
+    reps = replicate_scores(samples, w)
+    mean_ap = {}
+    run = 0
+    for name, ths in samples.error_types.items():
+        per_obj = []
+        for k in range(samples.targets.shape[1]):
+            total = float(w[0] @ samples.targets[:, k])
+            aps = []
+            for _ in ths:
+                lo, hi = samples.offsets[run], samples.offsets[run + 1]
+                img, tp = samples.est_image[lo:hi], samples.est_tp[lo:hi]
+                rep = np.repeat(tp, w[0, img].astype(int))
+                c = np.cumsum(rep)
+                aps.append(bop24.interpolated_ap(c / total, c / np.arange(1, c.size + 1)))
+                run += 1
+            if total > 0:
+                per_obj.append(np.mean(aps))
+        mean_ap[name] = np.mean(per_obj)
+    for key, value in bop24.score_keys(mean_ap).items():
+        assert reps[key][0] == pytest.approx(value, abs=1e-12), key
+
+
+def test_intervals_are_seeded_and_contain_the_score(case, tmp_path):
+    _, _, det, samples = case
+    path = tmp_path / "s.npz"
+    samples.save(path)
+    loaded = DetectionSamples.load(path)
+    a = confidence_intervals(loaded, 200, seed=1)
+    assert a == confidence_intervals(samples, 200, seed=1)
+    assert a != confidence_intervals(samples, 200, seed=2)
+    for key in KEYS[:-1]:
+        lo, hi = a[key]
+        assert lo < det.scores[key] < hi, key
+    scene = confidence_intervals(samples, 200, seed=1, unit="scene")
+    assert scene != a
+
+
+def test_scene_units_draw_whole_scenes():
+    images = np.array([[1, 0], [1, 1], [2, 0], [3, 5], [3, 6]])
+    units = resampling_units(images, "scene")
+    assert units.tolist() == [0, 0, 1, 2, 2]
+    w = resample_weights(units, 50, seed=0)
+    assert np.all(w[:, 0] == w[:, 1])
+    assert np.all(w[:, 3] == w[:, 4])
+    assert np.all(w[:, [0, 2, 3]].sum(axis=1) == 3)  # 3 scenes drawn per replicate
+
+
+def _pushed_away(est: PoseEstimates, rows) -> PoseEstimates:
+    """The estimates with the selected rows moved 0.5 m away (false positives)."""
+    far = np.where(np.asarray(rows)[:, None], [0.0, 0.0, 500.0], 0.0)
+    fields = {k: getattr(est, k) for k in ("scene_id", "im_id", "obj_id", "score", "R", "time")}
+    return PoseEstimates.from_arrays(**fields, t=est.t + far)
+
+
+def test_paired_comparison(tmp_path, case):
+    _, _, _, samples = case
+    same = compare_samples(samples, samples, 200)
+    for c in same.values():
+        assert c.diff == 0.0
+        assert c.ci == (0.0, 0.0)
+        assert c.p_value == 1.0
+    # The same method with every estimate of even images pushed 0.5 m away (all FP): lower
+    # AP, a difference the paired bootstrap must call significant.
+    ds, est, det, _ = case
+    worse_det = bop24.evaluate_bop24(ds, _pushed_away(est, est.im_id % 2 == 0))
+    worse = DetectionSamples.from_evaluation(worse_det)
+    res = compare_samples(worse, samples, 500, seed=0)
+    for key, c in res.items():
+        assert c.a == worse_det.scores[key], key
+        assert c.b == det.scores[key], key
+        assert c.diff == c.b - c.a
+        assert c.ci[0] <= c.diff <= c.ci[1], key
+    c = res["bop24_mAP"]
+    assert c.diff > 0
+    assert c.ci[0] > 0
+    assert c.p_value < 0.05
+    swapped = compare_samples(samples, worse, 500, seed=0)["bop24_mAP"]
+    assert swapped.diff == -c.diff
+    assert swapped.p_value == c.p_value
+    hand_ds, hand_est = _hand_dataset(tmp_path)
+    other = DetectionSamples.from_evaluation(bop24.evaluate_bop24(hand_ds, hand_est))
+    with pytest.raises(BopsurgError, match="different target images"):
+        compare_samples(samples, other)
+
+
+def test_cli_eval_intervals_and_compare(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    _, est = _hand_dataset(tmp_path)
+    save_results(tmp_path / "worse.csv", _pushed_away(est, est.score == 0.9))
+    evals = []
+    for name in ("r", "worse"):
+        out = tmp_path / f"eval_{name}"
+        args = ["eval", str(tmp_path), str(tmp_path / f"{name}.csv"), "--out", str(out)]
+        assert main([*args, "--bootstrap", "200", "--seed", "4"]) == 0
+        evals.append(str(out))
+    scores = json.loads((tmp_path / "eval_r" / "scores.json").read_text())
+    assert scores["bootstrap"] == {"replicates": 200, "unit": "image", "seed": 4}
+    lo, hi = scores["ci95"]["bop24_mAP"]
+    assert lo <= scores["bop24_mAP"] <= hi
+    assert "95 % interval" in capsys.readouterr().out
+    cmp_dir = tmp_path / "cmp"
+    assert main(["compare", *evals, "--out", str(cmp_dir), "--bootstrap", "100"]) == 0
+    table = capsys.readouterr().out
+    assert "bop24_mAP" in table
+    report = json.loads((cmp_dir / "compare.json").read_text())
+    c = report["comparisons"][evals[1]]["bop24_mAP"]
+    # The worse run turns the TP of image 0 into a FP; the duplicate then takes its GT.
+    assert c["a"] == pytest.approx(51 / 101)
+    assert c["diff"] == pytest.approx(c["b"] - c["a"])
+    assert (cmp_dir / "compare.png").stat().st_size > 0
+    # One-line errors: a folder without samples, a single folder.
+    assert main(["compare", evals[0], str(tmp_path)]) == 2
+    assert main(["compare", evals[0]]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2
+    assert SAMPLES_FILENAME in err[0]
