@@ -38,8 +38,9 @@ I64 = NDArray[np.int64]
 
 #: Resampling units of ``--ci-unit``.
 CI_UNITS = ("image", "scene")
-#: Replicates by default (enough for stable 2.5 / 97.5 percentiles).
-DEFAULT_REPLICATES = 1000
+#: Replicates by default: stable 2.5 / 97.5 percentiles at about the cost of the evaluation
+#: itself on 10,000 images (bench/bench_detection.py).
+DEFAULT_REPLICATES = 500
 #: File in an evaluation folder holding what the bootstrap needs (``bopsurg compare``).
 SAMPLES_FILENAME = "bootstrap_bop24.npz"
 #: Elements of one (replicates x estimates) block; bounds the memory of a replicate batch.
@@ -165,26 +166,46 @@ def weighted_ap(weights: F64, tp: NDArray[np.bool_], total: F64) -> F64:
     Returns:
         (B,) APs, as :func:`bopsurg.evaluation.bop24.interpolated_ap` with unit weights.
     """
-    b, n = weights.shape
+    b = weights.shape[0]
     ap = np.zeros(b)
-    if n:
-        tp_cum = np.cumsum(weights * tp, axis=1)
-        n_cum = np.cumsum(weights, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rec = tp_cum / total[:, None]
-            pre = np.where(n_cum > 0, tp_cum / n_cum, 0.0)
+    hits = np.flatnonzero(tp)
+    if hits.size:
+        # Only TP points matter: an FP point has the recall of the point before it and no
+        # more precision, so it never raises an interpolated precision. Precision at a TP
+        # counts every estimate up to it: sums of the weights between consecutive TPs.
+        starts = np.r_[0, hits[:-1] + 1]
+        n_cum = np.cumsum(np.add.reduceat(weights[:, : hits[-1] + 1], starts, axis=1), axis=1)
+        tp_cum = np.cumsum(weights[:, hits], axis=1)
+        pre = np.divide(tp_cum, n_cum, out=np.zeros_like(tp_cum), where=n_cum > 0)
         best_after = np.maximum.accumulate(pre[:, ::-1], axis=1)[:, ::-1]
-        # First ranked point with recall >= r, per row: a stable sort puts each recall point
-        # before the curve's equal recalls, so its position counts the recalls below it.
-        m = RECALL_POINTS.size
-        both = np.concatenate([np.broadcast_to(RECALL_POINTS, (b, m)), rec], axis=1)
-        order = np.argsort(both, axis=1, kind="stable")
-        pos = np.empty_like(order)
-        np.put_along_axis(pos, order, np.arange(m + n)[None, :].repeat(b, axis=0), axis=1)
-        first = pos[:, :m] - np.arange(m)
-        interp = np.take_along_axis(best_after, np.minimum(first, n - 1), axis=1)
-        ap = np.where(first < n, interp, 0.0).mean(axis=1)
+        first = _first_reaching(tp_cum, total)
+        k = hits.size
+        interp = np.take_along_axis(best_after, np.minimum(first, k - 1), axis=1)
+        ap = np.where(first < k, interp, 0.0).mean(axis=1)
     return np.where(total > 0, ap, np.nan)
+
+
+def _first_reaching(tp_cum: F64, total: F64) -> I64:
+    """(B, 101) index of the first ranked point with recall ``tp_cum / total ≥ r`` per recall
+    point r (N where none), exactly as comparing the float recalls.
+
+    Weighted TP counts are whole numbers, so each recall point becomes the smallest count k
+    with ``k / total ≥ r`` (in floats, as the recalls are computed), and all rows are searched
+    at once in one sorted integer array (row b offset by b · (N + 2)).
+    """
+    b, n = tp_cum.shape
+    safe = np.where(total > 0, total, 1.0)[:, None]
+    k = np.ceil(RECALL_POINTS[None, :] * safe) - 1  # the smallest k is k, k + 1 or k + 2
+    for _ in range(2):
+        k = np.where(k / safe >= RECALL_POINTS[None, :], k, k + 1)
+    k = np.where((k - 1) / safe >= RECALL_POINTS[None, :], k - 1, k)  # ceil rounded up
+    k = np.maximum(k, 0)
+    span = np.int64(max(n, int(safe.max())) + 2)
+    rows = np.arange(b, dtype=np.int64)[:, None] * span
+    keys = (np.minimum(tp_cum, span - 1).astype(np.int64) + rows).ravel()
+    query = (np.minimum(k, span - 1).astype(np.int64) + rows).ravel()
+    first = np.searchsorted(keys, query, side="left").reshape(b, -1) - rows // span * n
+    return first.astype(np.int64)
 
 
 def replicate_scores(samples: DetectionSamples, weights: F64) -> dict[str, F64]:

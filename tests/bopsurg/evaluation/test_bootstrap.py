@@ -40,20 +40,26 @@ def test_unit_weights_give_the_scores(case):
         assert np.all(reps[key] == det.scores[key]), key
 
 
-@pytest.mark.parametrize("seed", range(15))
+@pytest.mark.parametrize("seed", range(40))
 def test_weighted_ap_equals_ap_of_the_repeated_ranking(seed):
-    # Drawing an image w times repeats its estimates w times, adjacent in the ranking.
+    # Drawing an image w times repeats its estimates w times, adjacent in the ranking; all
+    # replicates (rows) at once.
     rng = np.random.default_rng(seed)
-    n = int(rng.integers(1, 25))
-    tp = rng.random(n) < 0.6
-    w = rng.integers(0, 4, n).astype(float)
-    targets = int(tp.sum() + rng.integers(0, 3)) or 1
-    total = float(targets * rng.integers(1, 3))
-    rep_tp = np.repeat(tp, w.astype(int))
-    tp_cum = np.cumsum(rep_tp)
-    expected = bop24.interpolated_ap(tp_cum / total, tp_cum / np.arange(1, rep_tp.size + 1))
-    got = weighted_ap(w[None, :], tp, np.array([total]))[0]
-    assert got == pytest.approx(expected, abs=1e-12)
+    n, b = int(rng.integers(1, 25)), 6
+    tp = rng.random(n) < rng.random()
+    w = rng.integers(0, 4, (b, n)).astype(float)
+    total = (w @ tp + rng.integers(0, 3, b)).astype(float)
+    total[0] = 0.0  # no targets in a replicate: NaN
+    got = weighted_ap(w, tp, total)
+    assert np.isnan(got[0])
+    for row in range(1, b):
+        rep_tp = np.repeat(tp, w[row].astype(int))
+        c = np.cumsum(rep_tp)
+        if total[row] == 0:
+            assert np.isnan(got[row])
+            continue
+        expected = bop24.interpolated_ap(c / total[row], c / np.arange(1, c.size + 1))
+        assert got[row] == pytest.approx(expected, abs=1e-12), row
 
 
 def test_weights_equal_explicit_resampling(case):
