@@ -118,6 +118,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_detections_arg(p)
     add_bootstrap_args(p)
+    p.add_argument(
+        "--figures",
+        action="store_true",
+        help="also write OUT/figures/: GT distributions (Fig. 2), error histograms (Fig. 4), "
+        "recall-vs-threshold and BOP24 precision-recall curves, PNG + PDF (needs matplotlib)",
+    )
     add_executor_args(p, unit="scene")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.set_defaults(func=run)
@@ -204,6 +210,10 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(result.summary, result.scores))
     if det is not None:  # BOP24 intervals and the samples bopsurg compare reads
         write_intervals(det, args)
+    if args.figures:
+        from bopsurg.viz.figures import figures_of_evaluation
+
+        print(f"wrote {len(figures_of_evaluation(Path(args.out), dataset, det))} figure files")
     print(
         f"\nwrote {Path(args.out) / 'errors.csv'}, summary.json, scores.json "
         f"({len(est)} estimates, {time.perf_counter() - t0:.1f} s)"
