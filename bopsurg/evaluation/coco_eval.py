@@ -186,7 +186,10 @@ def evaluate_coco(
             for r in results:
                 key = (int(r["scene_id"]), int(r["image_id"]))
                 if r.get(field) and key in ids:
-                    d = {k: v for k, v in r.items() if k in ("category_id", "score", field)}
+                    # Both fields kept: with a bbox, pycocotools takes a detection's area
+                    # (its COCO size class) from the box even in segm, as the reference.
+                    keep = ("category_id", "score", "bbox", "segmentation")
+                    d = {k: v for k, v in r.items() if k in keep}
                     d["image_id"] = ids[key]
                     seg = d.get("segmentation")
                     if isinstance(seg, dict) and isinstance(seg.get("counts"), list):

@@ -23,6 +23,7 @@ from bopsurg.evaluation.coco_eval import (
     merged_ground_truth,
 )
 from tests.bopsurg.bop.test_coco import _two_squares
+from tests.bopsurg.evaluation import coco_oracle
 
 pytest.importorskip("pycocotools")
 
@@ -120,3 +121,24 @@ def test_bad_results_are_one_line_errors(tmp_path, capsys):
     assert "bad.json" in err
     assert "0/bbox" in err
     assert len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("seed", coco_oracle.SEEDS)
+def test_scores_equal_the_reference_toolkit(tmp_path, seed):
+    """Numbers of ``scripts/eval_bop22_coco.py`` (see coco_oracle.py), bbox amodal and
+    modal and segm, to 1e-12."""
+    ds, results = coco_oracle.build_case(tmp_path / "ds", seed)
+    ref = json.loads(coco_oracle.FIXTURE.read_text())["cases"][str(seed)]
+    scores = evaluate_coco(ds, results, ["coco-bbox", "coco-segm"])
+    for prefix, values in ref.items():
+        for stat, value in values.items():
+            if stat == "average_time_per_image":
+                continue
+            key = f"bop22_coco_{prefix}_{stat}"
+            assert scores[key] == pytest.approx(value, abs=1e-12), key
+    assert scores["bop22_coco_average_time_per_image"] == pytest.approx(0.2)
+    # The case must exercise what it claims to.
+    assert scores["bop22_coco_bbox_AP"] != scores["bop22_coco_segm_AP"]
+    assert scores["bop22_coco_bbox_AP"] != scores["bop22_coco_bbox_modal_AP"]
+    targets = json.loads((tmp_path / "ds" / "test_targets_bop24.json").read_text())
+    assert len({t["scene_id"] for t in targets[:3]}) == 2  # scenes interleaved
