@@ -208,8 +208,7 @@ def run(args: argparse.Namespace) -> int:
     }
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
-    if det is not None:  # BOP24 intervals and the samples bopsurg compare reads
-        write_intervals(det, args)
+    write_intervals(result.gt_rows, det, args)  # bootstrap intervals, compare's samples
     if args.figures:
         from bopsurg.viz.figures import figures_of_evaluation
 

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
+from typing import Any
+
+import pandas as pd
 
 from bopsurg.atomic import write_text
 from bopsurg.evaluation.bootstrap import (
@@ -17,6 +21,7 @@ from bopsurg.evaluation.bootstrap import (
     intervals_json,
 )
 from bopsurg.evaluation.bop24 import DetectionEvaluation
+from bopsurg.evaluation.summary_ci import summary_intervals
 
 
 def _replicates(text: str) -> int:
@@ -50,22 +55,59 @@ def add_bootstrap_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default: 0)")
 
 
-def write_intervals(det: DetectionEvaluation, args: argparse.Namespace) -> None:
-    """Save the bootstrap samples (for ``bopsurg compare``) and, with ``--bootstrap N``, add
-    ``ci95`` and ``bootstrap`` to ``scores.json`` and print the intervals."""
+def write_intervals(
+    gt_rows: pd.DataFrame, det: DetectionEvaluation | None, args: argparse.Namespace
+) -> None:
+    """Save the BOP24 bootstrap samples (for ``bopsurg compare``) and, with ``--bootstrap N``,
+    add ``ci95`` and ``bootstrap`` to ``summary.json`` (the paper's table) and ``scores.json``
+    (BOP24/BOP25 keys) and print the intervals."""
     out = Path(args.out)
-    samples = DetectionSamples.from_evaluation(det)
-    samples.save(out / SAMPLES_FILENAME)
+    samples = DetectionSamples.from_evaluation(det) if det is not None else None
+    if samples is not None:
+        samples.save(out / SAMPLES_FILENAME)
     if args.bootstrap == 0:
         return
     t0 = time.perf_counter()
-    ci = confidence_intervals(samples, args.bootstrap, seed=args.seed, unit=args.ci_unit)
-    path = out / "scores.json"
-    scores = json.loads(path.read_text())
-    scores["ci95"] = intervals_json(ci)
-    scores["bootstrap"] = {"replicates": args.bootstrap, "unit": args.ci_unit, "seed": args.seed}
-    write_text(path, json.dumps(scores, indent=2, allow_nan=False) + "\n")
-    print(f"\nBOP24/BOP25 6D detection, 95 % interval ({args.bootstrap} x {args.ci_unit}s):")
-    for key, (lo, hi) in ci.items():
-        print(f"  {key:<34}{det.scores[key]:.4f}  [{lo:.4f}, {hi:.4f}]")
+    meta = {"replicates": args.bootstrap, "unit": args.ci_unit, "seed": args.seed}
+    summary = json.loads((out / "summary.json").read_text())
+    table_ci = summary_intervals(
+        gt_rows, float(summary["min_visib"]), args.bootstrap, args.seed, args.ci_unit
+    )
+    _add_to_json(out / "summary.json", {"ci95": _strict(table_ci), "bootstrap": meta})
+    print(f"\n95 % intervals ({args.bootstrap} bootstrap replicates by {args.ci_unit}):")
+    for m, stats in table_ci["table"].items():
+        text = ", ".join(
+            f"{k} {summary['table'][m][k]:.2f} [{lo:.2f}, {hi:.2f}]"
+            for k, (lo, hi) in stats.items()
+        )
+        print(f"  {m.upper():<6}{text}")
+    print(
+        "  recall "
+        + ", ".join(
+            f"{k} {summary['recall'][k]:.3f} [{lo:.3f}, {hi:.3f}]"
+            for k, (lo, hi) in table_ci["recall"].items()
+        )
+    )
+    if samples is not None and det is not None:
+        ci = confidence_intervals(samples, args.bootstrap, seed=args.seed, unit=args.ci_unit)
+        _add_to_json(out / "scores.json", {"ci95": intervals_json(ci), "bootstrap": meta})
+        print("  BOP24/BOP25 6D detection:")
+        for key, (lo, hi) in ci.items():
+            print(f"    {key:<32}{det.scores[key]:.4f}  [{lo:.4f}, {hi:.4f}]")
     print(f"  (bootstrap {time.perf_counter() - t0:.2f} s)")
+
+
+def _strict(value: Any) -> Any:
+    """Intervals as JSON lists, NaN as None."""
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return [None if math.isnan(v) else v for v in value]
+    return value
+
+
+def _add_to_json(path: Path, extra: dict[str, Any]) -> None:
+    """Add keys to a JSON object file written by the evaluation (atomically)."""
+    content = json.loads(path.read_text())
+    content.update(extra)
+    write_text(path, json.dumps(content, indent=2, allow_nan=False) + "\n")

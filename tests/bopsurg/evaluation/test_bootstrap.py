@@ -22,6 +22,8 @@ from bopsurg.evaluation.bootstrap import (
     resampling_units,
     weighted_ap,
 )
+from bopsurg.evaluation.runner import evaluate
+from bopsurg.evaluation.summary_ci import summary_intervals, weighted_median
 from tests.bopsurg.evaluation import bop24_oracle
 from tests.bopsurg.evaluation.test_bop24 import KEYS, _hand_dataset
 
@@ -167,6 +169,10 @@ def test_cli_eval_intervals_and_compare(tmp_path, capsys):
     lo, hi = scores["ci95"]["bop24_mAP"]
     assert lo <= scores["bop24_mAP"] <= hi
     assert "95 % interval" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "eval_r" / "summary.json").read_text())
+    lo, hi = summary["ci95"]["table"]["mssd"]["median"]
+    assert lo <= summary["table"]["mssd"]["median"] <= hi
+    assert summary["bootstrap"]["replicates"] == 200
     cmp_dir = tmp_path / "cmp"
     assert main(["compare", *evals, "--out", str(cmp_dir), "--bootstrap", "100"]) == 0
     table = capsys.readouterr().out
@@ -183,3 +189,34 @@ def test_cli_eval_intervals_and_compare(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2
     assert SAMPLES_FILENAME in err[0]
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_weighted_median_equals_median_of_the_repeated_values(seed):
+    rng = np.random.default_rng(seed)
+    n, b = int(rng.integers(1, 15)), 5
+    values = rng.choice([1.0, 2.0, 2.5, 7.0], n) if seed % 2 else rng.normal(size=n)
+    w = rng.integers(0, 4, (b, n)).astype(float)
+    w[0] = 0.0
+    got = weighted_median(values, w)
+    assert np.isnan(got[0])
+    for row in range(1, b):
+        rep = np.repeat(values, w[row].astype(int))
+        if rep.size:
+            assert got[row] == np.median(rep), row
+
+
+def test_summary_intervals_bracket_the_paper_table(case):
+    ds, est, _, _ = case
+    res = evaluate(ds, est, instance_metrics=["re", "te", "mssd", "mspd", "add", "adi"])
+    ci = summary_intervals(res.gt_rows, 0.3, 300, seed=2)
+    assert ci == summary_intervals(res.gt_rows, 0.3, 300, seed=2)
+    for m, stats in ci["table"].items():
+        for k, (lo, hi) in stats.items():
+            assert lo <= res.summary["table"][m][k] <= hi, (m, k)
+    for label, (lo, hi) in ci["recall"].items():
+        assert lo <= res.summary["recall"][label] <= hi, label
+    lo, hi = ci["add_auc"]
+    assert lo <= res.summary["add_auc"] <= hi
+    by_scene = summary_intervals(res.gt_rows, 0.3, 300, seed=2, unit="scene")
+    assert by_scene["table"]["mssd"]["median"] != ci["table"]["mssd"]["median"]
