@@ -26,6 +26,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -131,8 +132,16 @@ def run_toolkit(root: Path, toolkit: Path, python: Path, work: Path) -> dict:
     return {"scores": scores, "per_object_ap": per_object}
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def run_oracle(
+    argv: list[str] | None,
+    description: str,
+    fixture: Path,
+    seeds: tuple[int, ...],
+    case: Callable[[int, Path, Path, Path], dict],
+) -> int:
+    """Command line of an oracle script: ``case(seed, work_dir, toolkit, python)`` gives the
+    toolkit's numbers of one seed; all seeds are written to ``fixture`` with the commit."""
+    p = argparse.ArgumentParser(description=description)
     p.add_argument("--toolkit", type=Path, required=True, help="thodan/bop_toolkit checkout")
     p.add_argument("--python", type=Path, required=True, help="python that runs the toolkit")
     p.add_argument("--commit", default="", help="the toolkit's commit, if not a git checkout")
@@ -141,16 +150,23 @@ def main(argv: list[str] | None = None) -> int:
         ["git", "-C", str(args.toolkit), "rev-parse", "HEAD"], capture_output=True, text=True
     ).stdout.strip()
     out: dict = {"toolkit_commit": commit or args.commit or "unknown", "cases": {}}
-    for seed in SEEDS:
+    for seed in seeds:
         with tempfile.TemporaryDirectory() as tmp:
-            root = Path(tmp) / "ds"
-            build_case(root, seed)
-            out["cases"][str(seed)] = run_toolkit(root, args.toolkit, args.python, Path(tmp))
-        print(f"seed {seed}: {out['cases'][str(seed)]['scores']}")
-    FIXTURE.parent.mkdir(exist_ok=True)
-    FIXTURE.write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
-    print(f"wrote {FIXTURE}")
+            out["cases"][str(seed)] = case(seed, Path(tmp), args.toolkit, args.python)
+        print(f"seed {seed}: {out['cases'][str(seed)]}")
+    fixture.parent.mkdir(exist_ok=True)
+    fixture.write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
+    print(f"wrote {fixture}")
     return 0
+
+
+def _case(seed: int, work: Path, toolkit: Path, python: Path) -> dict:
+    build_case(work / "ds", seed)
+    return run_toolkit(work / "ds", toolkit, python, work)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_oracle(argv, __doc__.split("\n\n")[0], FIXTURE, SEEDS, _case)
 
 
 if __name__ == "__main__":

@@ -18,13 +18,11 @@ environment that runs it with pycocotools::
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +49,7 @@ from bopsurg.bop.scene import (
 )
 from bopsurg.bop.targets import ImageTarget, save_image_targets
 from bopsurg.example import DEFAULT_K
+from tests.bopsurg.evaluation.bop24_oracle import run_oracle
 
 SEEDS = (0, 1)
 FIXTURE = Path(__file__).parent / "data" / "coco_reference.json"
@@ -224,28 +223,13 @@ def run_toolkit(root: Path, results: list, toolkit: Path, python: Path, work: Pa
     return out
 
 
+def _case(seed: int, work: Path, toolkit: Path, python: Path) -> dict:
+    _, results = build_case(work / "ds", seed)
+    return run_toolkit(work / "ds", results, toolkit, python, work)
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--toolkit", type=Path, required=True, help="thodan/bop_toolkit checkout")
-    p.add_argument("--python", type=Path, required=True, help="python that runs the toolkit")
-    p.add_argument("--commit", default="", help="the toolkit's commit, if not a git checkout")
-    args = p.parse_args(argv)
-    commit = subprocess.run(
-        ["git", "-C", str(args.toolkit), "rev-parse", "HEAD"], capture_output=True, text=True
-    ).stdout.strip()
-    out: dict = {"toolkit_commit": commit or args.commit or "unknown", "cases": {}}
-    for seed in SEEDS:
-        with tempfile.TemporaryDirectory() as tmp:
-            root = Path(tmp) / "ds"
-            _, results = build_case(root, seed)
-            out["cases"][str(seed)] = run_toolkit(
-                root, results, args.toolkit, args.python, Path(tmp)
-            )
-        print(f"seed {seed}: {out['cases'][str(seed)]}")
-    FIXTURE.parent.mkdir(exist_ok=True)
-    FIXTURE.write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
-    print(f"wrote {FIXTURE}")
-    return 0
+    return run_oracle(argv, __doc__.split("\n\n")[0], FIXTURE, SEEDS, _case)
 
 
 if __name__ == "__main__":
