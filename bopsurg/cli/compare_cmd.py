@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 from bopsurg.atomic import atomic_path, write_text
 from bopsurg.cli.eval_stats import add_bootstrap_args
 from bopsurg.errors import BopsurgError
-from bopsurg.evaluation.bootstrap import SAMPLES_FILENAME, DetectionSamples, compare_samples
+from bopsurg.evaluation.bootstrap import (
+    SAMPLES_FILENAME,
+    DetectionSamples,
+    compare_samples,
+    json_strict,
+)
 
 HELP = "compare evaluations: paired differences, 95 % intervals and p-values"
 
@@ -70,24 +73,13 @@ def run(args: argparse.Namespace) -> int:
     print(_table(base_dir, rows, args.bootstrap))
     if args.out is not None:
         out = Path(args.out)
-        write_text(out / "compare.json", json.dumps(_strict(report), indent=2) + "\n")
+        write_text(out / "compare.json", json.dumps(json_strict(report), indent=2) + "\n")
         written = [out / "compare.json"]
         png = _plot(base_dir, rows, out / "compare.png")
         if png is not None:
             written.append(png)
         print("\nwrote " + ", ".join(str(p) for p in written))
     return 0
-
-
-def _strict(value: Any) -> Any:
-    """``value`` with NaN as None (strict JSON: a score without targets has no value)."""
-    if isinstance(value, dict):
-        return {k: _strict(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_strict(v) for v in value]
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    return value
 
 
 def _table(base_dir: Path, rows: list, replicates: int) -> str:

@@ -47,7 +47,8 @@ Writes into --out:
                 adi [mm] (ADD-S)
   summary.json  the paper's table (N, mean, std, median, min, max of RE, TE, MSSD over GT
                 instances with visib_fract >= --min-visib), missed instances, recall at
-                MSSD < 1/2/5 mm and RE < 5/10 deg, ADD and ADD-S AUC (0-0.1 x diameter)
+                MSSD < 1/2/5 mm and RE < 5/10 deg, ADD and ADD-S AUC (0-0.1 x diameter);
+                ci95: 95 % bootstrap intervals of the means, stds, medians, recalls, AUCs
   scores.json   BOP19 scores with the reference toolkit's keys and rules:
                 bop19_average_recall_mssd, _mspd, and with a depth renderer _vsd and
                 bop19_average_recall; bop19_average_time_per_image; per-threshold details;

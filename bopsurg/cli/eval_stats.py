@@ -1,4 +1,5 @@
-"""``bopsurg eval`` statistics: bootstrap 95 % intervals of the BOP24/BOP25 scores."""
+"""``bopsurg eval`` statistics: bootstrap 95 % intervals of the paper's table, its recalls
+and AUCs (summary.json) and of the BOP24/BOP25 scores (scores.json)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from bopsurg.evaluation.bootstrap import (
     SAMPLES_FILENAME,
     DetectionSamples,
     confidence_intervals,
-    intervals_json,
+    json_strict,
 )
 from bopsurg.evaluation.bop24 import DetectionEvaluation
 from bopsurg.evaluation.summary_ci import summary_intervals
@@ -73,37 +74,35 @@ def write_intervals(
     table_ci = summary_intervals(
         gt_rows, float(summary["min_visib"]), args.bootstrap, args.seed, args.ci_unit
     )
-    _add_to_json(out / "summary.json", {"ci95": _strict(table_ci), "bootstrap": meta})
+    _add_to_json(out / "summary.json", {"ci95": json_strict(table_ci), "bootstrap": meta})
     print(f"\n95 % intervals ({args.bootstrap} bootstrap replicates by {args.ci_unit}):")
     for m, stats in table_ci["table"].items():
         text = ", ".join(
-            f"{k} {summary['table'][m][k]:.2f} [{lo:.2f}, {hi:.2f}]"
+            f"{k} {_num(summary['table'][m][k], 2)} [{_num(lo, 2)}, {_num(hi, 2)}]"
             for k, (lo, hi) in stats.items()
         )
         print(f"  {m.upper():<6}{text}")
     print(
         "  recall "
         + ", ".join(
-            f"{k} {summary['recall'][k]:.3f} [{lo:.3f}, {hi:.3f}]"
+            f"{k} {_num(summary['recall'][k], 3)} [{_num(lo, 3)}, {_num(hi, 3)}]"
             for k, (lo, hi) in table_ci["recall"].items()
         )
     )
     if samples is not None and det is not None:
         ci = confidence_intervals(samples, args.bootstrap, seed=args.seed, unit=args.ci_unit)
-        _add_to_json(out / "scores.json", {"ci95": intervals_json(ci), "bootstrap": meta})
+        _add_to_json(out / "scores.json", {"ci95": json_strict(ci), "bootstrap": meta})
         print("  BOP24/BOP25 6D detection:")
         for key, (lo, hi) in ci.items():
             print(f"    {key:<32}{det.scores[key]:.4f}  [{lo:.4f}, {hi:.4f}]")
     print(f"  (bootstrap {time.perf_counter() - t0:.2f} s)")
 
 
-def _strict(value: Any) -> Any:
-    """Intervals as JSON lists, NaN as None."""
-    if isinstance(value, dict):
-        return {k: _strict(v) for k, v in value.items()}
-    if isinstance(value, tuple):
-        return [None if math.isnan(v) else v for v in value]
-    return value
+def _num(value: float | None, digits: int) -> str:
+    """A number for the printed intervals; n/a for a missing one (no instance)."""
+    if value is None or math.isnan(value):
+        return "n/a"
+    return f"{value:.{digits}f}"
 
 
 def _add_to_json(path: Path, extra: dict[str, Any]) -> None:

@@ -21,7 +21,6 @@ interval of the difference and a two-sided p-value ``2 · min(P(Δ* ≤ 0), P(Δ
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -300,6 +299,13 @@ def compare_samples(
     return out
 
 
-def intervals_json(intervals: Mapping[str, tuple[float, float]]) -> dict[str, Any]:
-    """``{key: [low, high]}`` with NaN as null (strict JSON)."""
-    return {k: [None if np.isnan(v) else v for v in lo_hi] for k, lo_hi in intervals.items()}
+def json_strict(value: Any) -> Any:
+    """``value`` for strict JSON: tuples as lists, NaN as None (a score without targets, an
+    interval without finite replicates)."""
+    if isinstance(value, dict):
+        return {k: json_strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_strict(v) for v in value]
+    if isinstance(value, float) and np.isnan(value):
+        return None
+    return value

@@ -51,8 +51,11 @@ EVALUATIONS: dict[str, tuple[tuple[str, str, str | None], ...]] = {
 def is_coco_results(path: str | Path) -> bool:
     """Whether a results file is a BOP COCO results JSON (by content: a JSON array), not a
     pose CSV."""
-    with open(path, "rb") as f:
-        head = f.read(256).lstrip()
+    try:
+        with open(path, "rb") as f:
+            head = f.read(256).lstrip()
+    except OSError:
+        return False  # the results loader reports the unreadable file
     return head.startswith(b"[")
 
 
