@@ -185,12 +185,13 @@ def weighted_ap(weights: F64, tp: NDArray[np.bool_], total: F64) -> F64:
 
 
 def _first_reaching(tp_cum: F64, total: F64) -> I64:
-    """(B, 101) index of the first ranked point with recall ``tp_cum / total ≥ r`` per recall
-    point r (N where none), exactly as comparing the float recalls.
+    """(B, 101) index of the first point (column of ``tp_cum``) with recall
+    ``tp_cum / total ≥ r`` per recall point r (the number of columns where none), exactly as
+    comparing the float recalls.
 
     Weighted TP counts are whole numbers, so each recall point becomes the smallest count k
     with ``k / total ≥ r`` (in floats, as the recalls are computed), and all rows are searched
-    at once in one sorted integer array (row b offset by b · (N + 2)).
+    at once in one sorted integer array (row b offset by b · span, span above every count).
     """
     b, n = tp_cum.shape
     safe = np.where(total > 0, total, 1.0)[:, None]
