@@ -16,16 +16,23 @@ from bopsurg.evaluation.bootstrap import (
     compare_samples,
     json_strict,
 )
+from bopsurg.evaluation.summary_ci import (
+    TABLE_SAMPLES_FILENAME,
+    compare_tables,
+    load_table_rows,
+)
 
 HELP = "compare evaluations: paired differences, 95 % intervals and p-values"
 
 DESCRIPTION = """\
-Compare two or more evaluations of the same test set (folders written by 'bopsurg eval'
-with the bop24 task). The first is the baseline; each other one is compared with it on
+Compare two or more evaluations of the same test set (folders written by 'bopsurg eval').
+The first is the baseline; each other one is compared with it on
 the same bootstrap replicates (paired: the same images drawn for both methods), which is
 what separates a real difference from the luck of the test set.
 
-For every BOP24/BOP25 score: both values, the difference (other - baseline), its 95 %
+For every number of the paper's table (mean, std, median of RE / TE / MSSD), the recalls
+at absolute thresholds, ADD / ADD-S AUC and, when evaluated, every BOP24/BOP25 score:
+both values, the difference (other - baseline), its 95 %
 interval, and the two-sided paired bootstrap p-value of "no difference". An interval
 that excludes 0 (p < 0.05) is a difference the test set supports.
 
@@ -55,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     if args.bootstrap < 1:
         raise BopsurgError("--bootstrap: compare needs at least 1 replicate")
     base_dir = Path(args.evals[0])
-    base = DetectionSamples.load(base_dir / SAMPLES_FILENAME)
+    base_table = load_table_rows(base_dir / TABLE_SAMPLES_FILENAME)
+    base = _bop24_samples(base_dir)
     report: dict[str, object] = {
         "baseline": str(base_dir),
         "bootstrap": {"replicates": args.bootstrap, "unit": args.ci_unit, "seed": args.seed},
@@ -63,9 +71,12 @@ def run(args: argparse.Namespace) -> int:
     }
     rows = []
     for other_dir in map(Path, args.evals[1:]):
-        other = DetectionSamples.load(other_dir / SAMPLES_FILENAME)
+        other_table = load_table_rows(other_dir / TABLE_SAMPLES_FILENAME)
+        other = _bop24_samples(other_dir)
         try:
-            res = compare_samples(base, other, args.bootstrap, args.seed, args.ci_unit)
+            res = compare_tables(base_table, other_table, args.bootstrap, args.seed, args.ci_unit)
+            if base is not None and other is not None:
+                res |= compare_samples(base, other, args.bootstrap, args.seed, args.ci_unit)
         except BopsurgError as err:
             raise BopsurgError(f"{base_dir} vs {other_dir}: {err}") from None
         report["comparisons"][str(other_dir)] = {k: asdict(c) for k, c in res.items()}  # type: ignore[index]
@@ -80,6 +91,12 @@ def run(args: argparse.Namespace) -> int:
             written.append(png)
         print("\nwrote " + ", ".join(str(p) for p in written))
     return 0
+
+
+def _bop24_samples(eval_dir: Path) -> DetectionSamples | None:
+    """The BOP24 samples of an evaluation, None when it ran without the bop24 task."""
+    path = eval_dir / SAMPLES_FILENAME
+    return DetectionSamples.load(path) if path.exists() else None
 
 
 def _table(base_dir: Path, rows: list, replicates: int) -> str:
@@ -108,7 +125,8 @@ def _plot(base_dir: Path, rows: list, path: Path) -> Path | None:
     except ImportError:
         print("compare.png skipped: needs matplotlib (pip install 'bopsurg[figures]')")
         return None
-    keys = list(rows[0][1])
+    # Scores on a common 0-1 scale (the table's deg / mm statistics are in the JSON).
+    keys = [k for k in rows[0][1] if k.startswith(("bop2", "recall_")) or k.endswith("_auc")]
     fig, ax = plt.subplots(figsize=(6.4, 0.5 + 0.45 * len(keys) * len(rows)))
     y = 0
     ticks, labels = [], []

@@ -55,7 +55,8 @@ Writes into --out:
                 BOP24/25 6D-detection AP (--task bop24): bop24_mAP_mssd, bop24_mAP_mssd_mm
                 (MSSD 2-20 mm), bop24_mAP_mspd, bop24_mAP, bop25_mAP, bop25_mAP_mm;
                 ci95: their 95 % bootstrap intervals (--bootstrap N, --ci-unit image|scene)
-  bootstrap_bop24.npz  what the intervals are computed from, for 'bopsurg compare'
+  bootstrap_table.npz, bootstrap_bop24.npz  what the intervals are computed from (the
+                table's GT instances, the BOP24 rankings), for 'bopsurg compare'
 
 Matching for errors.csv and the table: in each image, estimates in decreasing score order
 take the not-yet-matched GT instance of their object with the smallest MSSD (no threshold).

@@ -22,7 +22,12 @@ from bopsurg.evaluation.bootstrap import (
     json_strict,
 )
 from bopsurg.evaluation.bop24 import DetectionEvaluation
-from bopsurg.evaluation.summary_ci import summary_intervals
+from bopsurg.evaluation.summary_ci import (
+    TABLE_SAMPLES_FILENAME,
+    save_table_rows,
+    summary_intervals,
+    table_rows,
+)
 
 
 def _replicates(text: str) -> int:
@@ -66,11 +71,12 @@ def write_intervals(
     samples = DetectionSamples.from_evaluation(det) if det is not None else None
     if samples is not None:
         samples.save(out / SAMPLES_FILENAME)
+    summary = json.loads((out / "summary.json").read_text())
+    save_table_rows(out / TABLE_SAMPLES_FILENAME, table_rows(gt_rows, float(summary["min_visib"])))
     if args.bootstrap == 0:
         return
     t0 = time.perf_counter()
     meta = {"replicates": args.bootstrap, "unit": args.ci_unit, "seed": args.seed}
-    summary = json.loads((out / "summary.json").read_text())
     table_ci = summary_intervals(
         gt_rows, float(summary["min_visib"]), args.bootstrap, args.seed, args.ci_unit
     )

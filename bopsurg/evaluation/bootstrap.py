@@ -290,6 +290,14 @@ def compare_samples(
     full_a, full_b = replicate_scores(a, ones), replicate_scores(b, ones)
     weights = resample_weights(resampling_units(a.images, unit), replicates, seed)
     rep_a, rep_b = replicate_scores(a, weights), replicate_scores(b, weights)
+    return paired_comparisons(full_a, full_b, rep_a, rep_b)
+
+
+def paired_comparisons(
+    full_a: dict[str, F64], full_b: dict[str, F64], rep_a: dict[str, F64], rep_b: dict[str, F64]
+) -> dict[str, Comparison]:
+    """Comparisons from the full-set values ((1,) each) and the replicates drawn with the
+    same weights for both ((B,) each)."""
     out = {}
     for key in full_a:
         d = rep_b[key] - rep_a[key]

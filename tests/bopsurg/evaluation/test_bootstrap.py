@@ -13,7 +13,6 @@ from bopsurg.cli.main import main
 from bopsurg.errors import BopsurgError
 from bopsurg.evaluation import bop24
 from bopsurg.evaluation.bootstrap import (
-    SAMPLES_FILENAME,
     DetectionSamples,
     compare_samples,
     confidence_intervals,
@@ -23,7 +22,13 @@ from bopsurg.evaluation.bootstrap import (
     weighted_ap,
 )
 from bopsurg.evaluation.runner import evaluate
-from bopsurg.evaluation.summary_ci import summary_intervals, weighted_median
+from bopsurg.evaluation.summary_ci import (
+    TABLE_SAMPLES_FILENAME,
+    compare_tables,
+    summary_intervals,
+    table_rows,
+    weighted_median,
+)
 from tests.bopsurg.evaluation import bop24_oracle
 from tests.bopsurg.evaluation.test_bop24 import KEYS, _hand_dataset
 
@@ -188,7 +193,13 @@ def test_cli_eval_intervals_and_compare(tmp_path, capsys):
     assert main(["compare", evals[0]]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2
-    assert SAMPLES_FILENAME in err[0]
+    assert TABLE_SAMPLES_FILENAME in err[0]
+    # The paper's table is compared too, on GT instances: both runs have the same table
+    # except image 0's instance, whose estimate the worse run moved 0.5 m away.
+    t = report["comparisons"][evals[1]]
+    assert t["mssd_median"]["diff"] == pytest.approx(t["mssd_median"]["b"] - t["mssd_median"]["a"])
+    assert t["te_mean"]["b"] > t["te_mean"]["a"]
+    assert "recall_mssd<5mm" in t
 
 
 @pytest.mark.parametrize("seed", range(30))
@@ -220,3 +231,16 @@ def test_summary_intervals_bracket_the_paper_table(case):
     assert lo <= res.summary["add_auc"] <= hi
     by_scene = summary_intervals(res.gt_rows, 0.3, 300, seed=2, unit="scene")
     assert by_scene["table"]["mssd"]["median"] != ci["table"]["mssd"]["median"]
+
+
+def test_compare_tables_pairs_the_same_instances(case):
+    ds, est, _, _ = case
+    rows = table_rows(evaluate(ds, est, instance_metrics=["re", "te", "mssd"]).gt_rows, 0.3)
+    same = compare_tables(rows, rows, 100)
+    assert all(c.diff == 0.0 and c.p_value == 1.0 for c in same.values())
+    worse = rows.assign(mssd=rows["mssd"] + 1.0)  # every MSSD 1 mm larger
+    c = compare_tables(rows, worse, 200)["mssd_median"]
+    assert c.diff == pytest.approx(1.0)
+    assert c.ci == pytest.approx((1.0, 1.0))
+    with pytest.raises(BopsurgError, match="different GT instances"):
+        compare_tables(rows, rows.iloc[1:], 10)
