@@ -27,6 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bopsurg.atomic import remove_stale_temporaries, write_text
+from bopsurg.bop.coco import write_detection_annotations
 from bopsurg.bop.dataset import BopDataset, BopScene
 from bopsurg.bop.images import image_size, load_depth, save_mask
 from bopsurg.bop.scene import GtInfo, save_scene_gt_info
@@ -242,4 +243,5 @@ def annotate_dataset(
         gts = {s.scene_id: s.gt for s in dataset.iter_scenes()}
         infos = {s.scene_id: s.gt_info or {} for s in dataset.iter_scenes()}
         save_targets(targets, enumerate_targets(gts, infos))
+    write_detection_annotations(dataset, keep_targets=True)  # scene_gt_coco, BOP24 targets
     return AnnotateReport(len(todo) + skipped, skipped, instances, with_depth)

@@ -20,7 +20,8 @@ from tqdm import tqdm
 
 from bopsurg._version import __version__
 from bopsurg.atomic import write_text
-from bopsurg.bop.dataset import save_camera_json
+from bopsurg.bop.coco import write_detection_annotations
+from bopsurg.bop.dataset import BopDataset, save_camera_json
 from bopsurg.bop.jsonio import load_json
 from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
@@ -224,6 +225,7 @@ def generate_dataset(
         bar.close()
     scene_ids = [u.scene_id for u in units]
     _write_targets(out, split, scene_ids)
+    write_detection_annotations(BopDataset(out, split))  # scene_gt_coco, BOP24 targets
     return GenerateReport(
         scenes=len(results),
         scenes_skipped=sum(r.skipped for r in results),

@@ -13,13 +13,14 @@ from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
 from bopsurg.bop._validate import Issues, get_dict, get_float, get_int
+from bopsurg.bop.coco import SCENE_GT_COCO, parse_scene_gt_coco
 from bopsurg.bop.dataset import BopScene, list_scene_ids, model_path
 from bopsurg.bop.images import image_size, load_mask
 from bopsurg.bop.jsonio import load_json
@@ -32,11 +33,12 @@ from bopsurg.bop.scene import (
     parse_scene_gt,
     parse_scene_gt_info,
 )
-from bopsurg.bop.targets import parse_targets
+from bopsurg.bop.targets import TARGETS_BOP24_FILENAME, parse_image_targets, parse_targets
 from bopsurg.errors import InputError
 from bopsurg.geometry import ROTATION_ATOL, is_rotation
 
 logger = logging.getLogger(__name__)
+T = TypeVar("T")
 
 #: Tolerance of ``visib_fract == px_count_visib / px_count_all``.
 VISIB_FRACT_ATOL = 1e-6
@@ -505,6 +507,31 @@ def _check_targets(
         rep.add(path, f"{first}/scene_id", f"scene {sid} is not in the split")
 
 
+def _parse_optional(path: Path, rep: _Report, parse: Callable[[Any, Issues], T]) -> T | None:
+    """Parse a file that may be absent, reporting its issues; None when absent or unreadable."""
+    content = _load(path, rep, missing=None)
+    if content is None:
+        return None
+    issues = Issues(path, collect=True)
+    parsed = parse(content, issues)
+    rep.issues(issues)
+    return parsed
+
+
+def _check_image_targets(root: Path, scenes: dict[int, _SceneSummary], rep: _Report) -> None:
+    """``test_targets_bop24.json`` (if present) names existing scenes and images."""
+    path = root / TARGETS_BOP24_FILENAME
+    targets = _parse_optional(path, rep, parse_image_targets)
+    if targets is None:
+        return
+    for i, t in enumerate(targets):
+        s = scenes.get(t.scene_id)
+        if s is None:
+            rep.add(path, f"{i}/scene_id", f"scene {t.scene_id} is not in the split")
+        elif s.im_ids is not None and t.im_id not in s.im_ids:
+            rep.add(path, f"{i}/im_id", f"scene {t.scene_id} has no image {t.im_id}")
+
+
 # --------------------------------------------------------------------------- entry point
 
 
@@ -530,7 +557,9 @@ def check_dataset(
     ``px_count_visib`` pixels and ``bbox_visib`` as its box, a ``mask`` has between
     ``px_count_valid`` and ``px_count_all`` pixels and contains ``mask_visib``; finally
     ``test_targets_bop19.json`` (if present) names existing scenes, images and objects with
-    ``inst_count`` no larger than the number of GT instances.
+    ``inst_count`` no larger than the number of GT instances, and ``test_targets_bop24.json``
+    (if present) existing scenes and images; each ``scene_gt_coco.json`` (if present) has the
+    COCO layout and RLE masks of the stated size.
 
     Args:
         root: The dataset folder.
@@ -576,3 +605,6 @@ def _check_all(
         scene = BopScene(sid, split_dir / f"{sid:06d}")
         summaries[sid] = _check_scene(scene, known_obj, expected_size, check_images, rep)
     _check_targets(root, summaries, known_obj, rep)
+    _check_image_targets(root, summaries, rep)
+    for sid in scene_ids:  # 2D annotations of the COCO tasks, where present
+        _parse_optional(split_dir / f"{sid:06d}" / SCENE_GT_COCO, rep, parse_scene_gt_coco)

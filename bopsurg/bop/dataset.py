@@ -25,7 +25,16 @@ from bopsurg.bop.scene import (
     load_scene_gt,
     load_scene_gt_info,
 )
-from bopsurg.bop.targets import MIN_VISIB, Target, enumerate_targets, load_targets
+from bopsurg.bop.targets import (
+    MIN_VISIB,
+    TARGETS_BOP24_FILENAME,
+    ImageTarget,
+    Target,
+    enumerate_image_targets,
+    enumerate_targets,
+    load_image_targets,
+    load_targets,
+)
 from bopsurg.errors import DatasetError
 
 logger = logging.getLogger(__name__)
@@ -267,6 +276,19 @@ class BopDataset:
             gts[scene.scene_id] = scene.gt
             infos[scene.scene_id] = info
         return enumerate_targets(gts, infos, MIN_VISIB)
+
+    def image_targets(self, filename: str = TARGETS_BOP24_FILENAME) -> list[ImageTarget]:
+        """The 6D-detection targets of ``root/filename`` (images), or, if the file does not
+        exist, every image with GT (logged).
+
+        Raises:
+            DatasetError: Malformed targets file.
+        """
+        path = self.root / filename
+        if path.exists():
+            return load_image_targets(path)
+        logger.info("%s not found: evaluating every image with GT", path)
+        return enumerate_image_targets({s.scene_id: s.gt for s in self.iter_scenes()})
 
     @functools.cached_property
     def camera_json(self) -> dict[str, Any] | None:

@@ -128,3 +128,65 @@ def enumerate_targets(
             )
             out.extend(Target(int(scene_id), int(im_id), int(o), c) for o, c in counts.items())
     return sorted(out)
+
+
+# --------------------------------------------------------------------------- BOP24 targets
+#: File name of the 6D-detection targets (BOP 2023-2025): the images to evaluate.
+TARGETS_BOP24_FILENAME = "test_targets_bop24.json"
+
+
+@dataclass(frozen=True, order=True)
+class ImageTarget:
+    """Image ``im_id`` of scene ``scene_id`` is evaluated (BOP24 6D detection, COCO 2D)."""
+
+    scene_id: int
+    im_id: int
+
+
+def parse_image_targets(content: Any, issues: Issues) -> list[ImageTarget]:
+    """Validate decoded ``test_targets_bop24.json`` content (``[{"scene_id", "im_id"}]``;
+    other keys are allowed and ignored, as the reference does)."""
+    items = get_list(content, None, issues, "a list of image targets")
+    out = []
+    for i, entry in enumerate(items or []):
+        d = get_dict(entry, str(i), issues, "an image target {scene_id, im_id}")
+        if d is None:
+            continue
+        vals: list[int | None] = []
+        for key in ("scene_id", "im_id"):
+            if key not in d:
+                issues("missing", f"{i}/{key}")
+                vals.append(None)
+            else:
+                vals.append(get_int(d[key], f"{i}/{key}", issues, minimum=0))
+        if vals[0] is not None and vals[1] is not None:
+            out.append(ImageTarget(vals[0], vals[1]))
+    return out
+
+
+def load_image_targets(path: str | Path) -> list[ImageTarget]:
+    """Load ``test_targets_bop24.json``; the order of the file is kept (it decides the order
+    of tied scores in the reference's precision-recall curves).
+
+    Raises:
+        DatasetError: Missing or malformed file; ``field`` is ``"index/key"``.
+    """
+    return parse_image_targets(load_json(path), Issues(path))
+
+
+def save_image_targets(path: str | Path, targets: Iterable[ImageTarget]) -> None:
+    """Write ``test_targets_bop24.json`` in the reference layout, atomically."""
+    save_json(path, [{"im_id": int(t.im_id), "scene_id": int(t.scene_id)} for t in targets])
+
+
+def enumerate_image_targets(
+    scene_gts: Mapping[int, Mapping[int, Sequence[GtPose]]],
+) -> list[ImageTarget]:
+    """Every image with at least one GT instance, sorted by scene and image id.
+
+    The 6D-detection evaluation decides itself which instances count (``visib_fract >= 0.1``)
+    and ignores estimates matched to the others, so the file only lists images.
+    """
+    return sorted(
+        ImageTarget(int(s), int(i)) for s, ims in scene_gts.items() for i, gts in ims.items() if gts
+    )

@@ -58,6 +58,11 @@ CORE: tuple[Command, ...] = (
         "bopsurg.cli.eval_cmd",
     ),
     Command(
+        "compare",
+        "compare evaluations: paired differences, 95%% intervals and p-values",
+        "bopsurg.cli.compare_cmd",
+    ),
+    Command(
         "viz",
         "evaluate a BOP results CSV and write a rerun .rrd for visual error analysis",
         "bopsurg.cli.viz_cmd",

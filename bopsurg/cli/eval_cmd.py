@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 from bopsurg.cli.commands import help_of
 from bopsurg.cli.inputs import (
+    add_bootstrap_args,
     add_dataset_and_results,
     add_detections_arg,
     add_executor_args,
@@ -17,6 +18,7 @@ from bopsurg.cli.inputs import (
     load_detections_arg,
 )
 from bopsurg.errors import BopsurgError
+from bopsurg.evaluation.options import TASK_CHOICES
 from bopsurg.plugins import DepthRenderer, available_plugins, load_plugin
 
 if TYPE_CHECKING:
@@ -28,7 +30,9 @@ log = logging.getLogger(__name__)
 HELP = help_of("eval")
 
 DESCRIPTION = """\
-Evaluate 6D pose estimates (a BOP19 results CSV) on a BOP dataset split.
+Evaluate 6D pose estimates (a BOP19 results CSV) on a BOP dataset split, or 2D detections
+(a BOP COCO results JSON, as 'bopsurg predict --detections-out' writes) with pycocotools:
+the results file is recognised by its content.
 
 Writes into --out:
   errors.csv    one row per estimate: scene_id, im_id, obj_id, gt_id (-1 = no GT left for
@@ -36,10 +40,16 @@ Writes into --out:
                 adi [mm] (ADD-S)
   summary.json  the paper's table (N, mean, std, median, min, max of RE, TE, MSSD over GT
                 instances with visib_fract >= --min-visib), missed instances, recall at
-                MSSD < 1/2/5 mm and RE < 5/10 deg, ADD and ADD-S AUC (0-0.1 x diameter)
+                MSSD < 1/2/5 mm and RE < 5/10 deg, ADD and ADD-S AUC (0-0.1 x diameter);
+                ci95: 95 % bootstrap intervals of the means, stds, medians, recalls, AUCs
   scores.json   BOP19 scores with the reference toolkit's keys and rules:
                 bop19_average_recall_mssd, _mspd, and with a depth renderer _vsd and
-                bop19_average_recall; bop19_average_time_per_image; per-threshold details
+                bop19_average_recall; bop19_average_time_per_image; per-threshold details;
+                BOP24/25 6D-detection AP (--task bop24): bop24_mAP_mssd, bop24_mAP_mssd_mm
+                (MSSD 2-20 mm), bop24_mAP_mspd, bop24_mAP, bop25_mAP, bop25_mAP_mm;
+                ci95: their 95 % bootstrap intervals (--bootstrap N, --ci-unit image|scene)
+  bootstrap_table.npz, bootstrap_bop24.npz  what the intervals are computed from (the
+                table's GT instances, the BOP24 rankings), for 'bopsurg compare'
 
 Matching for errors.csv and the table: in each image, estimates in decreasing score order
 take the not-yet-matched GT instance of their object with the smallest MSSD (no threshold).
@@ -68,6 +78,20 @@ def register(sub: Subparsers) -> None:
         help="targets JSON (default: DATASET/test_targets_bop19.json, else enumerated from GT)",
     )
     p.add_argument(
+        "--task",
+        choices=TASK_CHOICES,
+        default="all",
+        help="bop19 (6D localization AR), bop24 (6D detection AP, BOP 2023-2025) for a pose "
+        "CSV; coco-bbox, coco-segm (COCO AP via pycocotools) for a BOP COCO results JSON; "
+        "all (default: every task the results allow)",
+    )
+    p.add_argument(
+        "--targets-bop24",
+        default=None,
+        help="BOP24 targets JSON (default: DATASET/test_targets_bop24.json, else every image "
+        "with GT)",
+    )
+    p.add_argument(
         "--min-visib",
         type=float,
         default=0.3,
@@ -93,6 +117,13 @@ def register(sub: Subparsers) -> None:
         help="also write a rerun recording for visual error analysis (needs bopsurg[rerun])",
     )
     add_detections_arg(p)
+    add_bootstrap_args(p)
+    p.add_argument(
+        "--figures",
+        action="store_true",
+        help="also write OUT/figures/: GT distributions (Fig. 2), error histograms (Fig. 4), "
+        "recall-vs-threshold and BOP24 precision-recall curves, PNG + PDF (needs matplotlib)",
+    )
     add_executor_args(p, unit="scene")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.set_defaults(func=run)
@@ -133,16 +164,24 @@ def _renderer_name(renderer: DepthRenderer | None) -> str | None:
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
     from bopsurg._version import __version__
-    from bopsurg.bop.targets import load_targets
+    from bopsurg.bop.targets import load_image_targets, load_targets
+    from bopsurg.cli.eval_coco import run_coco
+    from bopsurg.cli.eval_stats import write_intervals
+    from bopsurg.evaluation.coco_eval import is_coco_results
     from bopsurg.evaluation.runner import evaluate, evaluate_distributed, write_evaluation
     from bopsurg.evaluation.summary import format_table
+    from bopsurg.evaluation.tasks import add_detection_scores, resolve_tasks
     from bopsurg.executors import make_executor
 
     t0 = time.perf_counter()
     executor = None
     if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
         executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
+    if is_coco_results(args.results):  # 2D tasks: a COCO JSON, recognised by its content
+        return run_coco(args)
+    tasks = resolve_tasks(args.task)
     dataset, est = load_dataset_and_results(args)
+    image_targets = load_image_targets(args.targets_bop24) if args.targets_bop24 else None
     boxes = load_detections_arg(args)  # early: a bad file fails before the evaluation
     targets = load_targets(args.targets) if args.targets else None
     renderer = _renderer(args.renderer, dataset)
@@ -170,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             **options,
         )
+    det = add_detection_scores(result.scores, tasks, dataset, est, image_targets)
     meta = {
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),
@@ -178,6 +218,11 @@ def run(args: argparse.Namespace) -> int:
     }
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
+    write_intervals(result.gt_rows, det, args)  # bootstrap intervals, compare's samples
+    if args.figures:
+        from bopsurg.viz.figures import figures_of_evaluation
+
+        print(f"wrote {len(figures_of_evaluation(Path(args.out), dataset, det))} figure files")
     print(
         f"\nwrote {Path(args.out) / 'errors.csv'}, summary.json, scores.json "
         f"({len(est)} estimates, {time.perf_counter() - t0:.1f} s)"

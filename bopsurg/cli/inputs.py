@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from bopsurg.evaluation.options import CI_UNITS, DEFAULT_REPLICATES
+
 if TYPE_CHECKING:  # imported in the functions: building the parser stays light
     from bopsurg.bop.dataset import BopDataset
     from bopsurg.bop.results import PoseEstimates
@@ -77,3 +79,34 @@ def load_detections_arg(args: argparse.Namespace) -> dict[tuple[int, int], Detec
     from bopsurg.bop.detections import load_detections
 
     return load_detections(args.detections)[0]
+
+
+def _replicates(text: str) -> int:
+    """``--bootstrap`` value: a non-negative integer (argparse reports a bad one)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a number of replicates >= 0, got {text!r}")
+    return n
+
+
+def add_bootstrap_args(p: argparse.ArgumentParser) -> None:
+    """The options of the bootstrap intervals (shared by ``eval`` and ``compare``)."""
+    p.add_argument(
+        "--bootstrap",
+        type=_replicates,
+        default=DEFAULT_REPLICATES,
+        metavar="N",
+        help=f"bootstrap replicates of the 95 %% intervals (default: {DEFAULT_REPLICATES}; "
+        "0 = no intervals)",
+    )
+    p.add_argument(
+        "--ci-unit",
+        choices=CI_UNITS,
+        default="image",
+        help="what the bootstrap resamples: target images, or whole scenes when images of a "
+        "scene are correlated (consecutive video frames) (default: image)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default: 0)")

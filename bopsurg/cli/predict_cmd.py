@@ -80,7 +80,8 @@ def register(sub: Subparsers) -> None:
         "--detections-out",
         default=None,
         metavar="FILE.json",
-        help="also write the 2D box of every estimate (BOP detections JSON)",
+        help="also write the 2D box of every estimate (BOP COCO results JSON: bopsurg eval "
+        "scores it with --task coco-bbox)",
     )
     p.add_argument("--max-images", type=int, default=None, help="stop after N images")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")

@@ -131,7 +131,8 @@ def test_help_loads_no_command_module():
     code = (
         "import sys\n"
         "from bopsurg.cli.main import main\n"
-        "for argv in (['--help'], ['eval', '--help'], ['check', '--help']):\n"
+        "for argv in (['--help'], ['eval', '--help'], ['check', '--help'],\n"
+        "             ['compare', '--help']):\n"
         "    try:\n"
         "        main(argv)\n"
         "    except SystemExit:\n"

@@ -6,8 +6,10 @@ import json
 
 import pytest
 
+from bopsurg.bop.check import check_dataset
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import image_size
+from bopsurg.bop.targets import load_image_targets
 from bopsurg.cli.main import main
 
 pytest.importorskip("pybullet")
@@ -34,6 +36,11 @@ def test_half_circle_needle_at_320x240_with_explicit_K(bag, tmp_path):
     assert scene.camera[im_id].K[0, 0] == 180.0
     camera = json.loads((out / "camera.json").read_text())
     assert (camera["width"], camera["height"], camera["cx"]) == (320, 240, 160.0)
+    # The detection tasks' files: BOP24 targets and 2D annotations, valid for the checker.
+    coco = json.loads((scene.scene_dir / "scene_gt_coco.json").read_text())
+    assert len(coco["images"]) == len(scene.im_ids)
+    assert len(load_image_targets(out / "test_targets_bop24.json")) == len(scene.im_ids)
+    assert check_dataset(out) == []
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@ boxes and the PnP decoding path, and the shipped model.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 
@@ -197,6 +198,9 @@ def test_the_demo_runs_the_main_job_end_to_end(tmp_path, capsys):
     assert f"rerun {rrd}" in out
     assert len(load_results(tmp_path / "results.csv")) > 0
     assert (tmp_path / "detections.json").is_file()
+    assert "bop24_mAP_mssd_mm" in out  # with its 95 % interval
+    if importlib.util.find_spec("pycocotools") is not None:
+        assert "detector (2D boxes, COCO AP via pycocotools): AP" in out
 
     # the shipped pose head predicts masks that PnP-RANSAC can use: not an empty mask that
     # silently falls back to the direct decoding on every ROI, nor an uninformative one: a

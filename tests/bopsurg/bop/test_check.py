@@ -198,3 +198,18 @@ def test_problem_str_is_one_line(dataset: Path, check_images: bool) -> None:
     for p in check_dataset(dataset, check_images=check_images):
         assert "\n" not in str(p)
         assert str(p).count(": ") >= 1
+
+
+def test_bop24_targets_file(dataset: Path) -> None:
+    from bopsurg.bop.targets import ImageTarget, save_image_targets
+
+    path = dataset / "test_targets_bop24.json"
+    save_image_targets(path, [ImageTarget(1, 0), ImageTarget(1, 1)])
+    assert check_dataset(dataset) == []
+    save_image_targets(path, [ImageTarget(1, 5), ImageTarget(2, 0)])
+    path.write_text(path.read_text().replace("]", ', {"scene_id": 1}]'))
+    assert lines(check_dataset(dataset)) == [
+        f"{path}: 2/im_id: missing",
+        f"{path}: 0/im_id: scene 1 has no image 5",
+        f"{path}: 1/scene_id: scene 2 is not in the split",
+    ]

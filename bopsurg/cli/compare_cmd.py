@@ -1,0 +1,154 @@
+"""``bopsurg compare``: paired bootstrap comparison of evaluations of the same test set."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from bopsurg.cli.commands import help_of
+from bopsurg.cli.inputs import add_bootstrap_args
+from bopsurg.errors import BopsurgError
+
+if TYPE_CHECKING:
+    from bopsurg.cli.commands import Subparsers
+    from bopsurg.evaluation.bootstrap import DetectionSamples
+
+HELP = help_of("compare")
+
+DESCRIPTION = """\
+Compare two or more evaluations of the same test set (folders written by 'bopsurg eval').
+The first is the baseline; each other one is compared with it on
+the same bootstrap replicates (paired: the same images drawn for both methods), which is
+what separates a real difference from the luck of the test set.
+
+For every number of the paper's table (mean, std, median of RE / TE / MSSD), the recalls
+at absolute thresholds, ADD / ADD-S AUC and, when evaluated, every BOP24/BOP25 score:
+both values, the difference (other - baseline), its 95 %
+interval, and the two-sided paired bootstrap p-value of "no difference". An interval
+that excludes 0 (p < 0.05) is a difference the test set supports.
+
+Writes into --out: compare.json, and compare.png (needs matplotlib: bopsurg[figures]).
+
+Example:
+  bopsurg eval DATA a.csv --out eval_a && bopsurg eval DATA b.csv --out eval_b
+  bopsurg compare eval_a eval_b --out cmp
+"""
+
+
+def register(sub: Subparsers) -> None:
+    """Add the ``compare`` subcommand."""
+    p = sub.add_parser(
+        "compare", help=HELP, description=DESCRIPTION, formatter_class=argparse.RawTextHelpFormatter
+    )
+    p.add_argument("evals", nargs="+", metavar="EVAL_DIR", help="folders of 'bopsurg eval'")
+    p.add_argument("--out", default=None, help="folder for compare.json and compare.png")
+    add_bootstrap_args(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Compare every evaluation with the first one; print the table, write the files."""
+    from bopsurg.atomic import write_text
+    from bopsurg.evaluation.bootstrap import compare_samples, json_strict
+    from bopsurg.evaluation.summary_ci import (
+        TABLE_SAMPLES_FILENAME,
+        compare_tables,
+        load_table_rows,
+    )
+
+    if len(args.evals) < 2:
+        raise BopsurgError("compare needs at least two evaluation folders")
+    if args.bootstrap < 1:
+        raise BopsurgError("--bootstrap: compare needs at least 1 replicate")
+    base_dir = Path(args.evals[0])
+    base_table = load_table_rows(base_dir / TABLE_SAMPLES_FILENAME)
+    base = _bop24_samples(base_dir)
+    report: dict[str, object] = {
+        "baseline": str(base_dir),
+        "bootstrap": {"replicates": args.bootstrap, "unit": args.ci_unit, "seed": args.seed},
+        "comparisons": {},
+    }
+    rows = []
+    for other_dir in map(Path, args.evals[1:]):
+        other_table = load_table_rows(other_dir / TABLE_SAMPLES_FILENAME)
+        other = _bop24_samples(other_dir)
+        try:
+            res = compare_tables(base_table, other_table, args.bootstrap, args.seed, args.ci_unit)
+            if base is not None and other is not None:
+                res |= compare_samples(base, other, args.bootstrap, args.seed, args.ci_unit)
+        except BopsurgError as err:
+            raise BopsurgError(f"{base_dir} vs {other_dir}: {err}") from None
+        report["comparisons"][str(other_dir)] = {k: asdict(c) for k, c in res.items()}  # type: ignore[index]
+        rows.append((other_dir, res))
+    print(_table(base_dir, rows, args.bootstrap))
+    if args.out is not None:
+        out = Path(args.out)
+        write_text(out / "compare.json", json.dumps(json_strict(report), indent=2) + "\n")
+        written = [out / "compare.json"]
+        png = _plot(base_dir, rows, out / "compare.png")
+        if png is not None:
+            written.append(png)
+        print("\nwrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def _bop24_samples(eval_dir: Path) -> DetectionSamples | None:
+    """The BOP24 samples of an evaluation, None when it ran without the bop24 task."""
+    from bopsurg.evaluation.bootstrap import SAMPLES_FILENAME, DetectionSamples
+
+    path = eval_dir / SAMPLES_FILENAME
+    return DetectionSamples.load(path) if path.exists() else None
+
+
+def _table(base_dir: Path, rows: list, replicates: int) -> str:
+    """The printed comparison (a p-value of 0 is below the bootstrap's resolution)."""
+    lines = []
+    for other_dir, res in rows:
+        lines += [
+            f"{other_dir} - {base_dir}:",
+            f"  {'score':<20}{'baseline':>10}{'other':>10}{'diff':>10}"
+            f"{'95 % interval':>22}{'p':>8}",
+        ]
+        for key, c in res.items():
+            ci = f"[{c.ci[0]:+.4f}, {c.ci[1]:+.4f}]"
+            p = f"<{1 / replicates:.2g}" if c.p_value == 0 else f"{c.p_value:.3f}"
+            lines.append(f"  {key:<20}{c.a:>10.4f}{c.b:>10.4f}{c.diff:>+10.4f}{ci:>22}{p:>8}")
+    return "\n".join(lines)
+
+
+def _plot(base_dir: Path, rows: list, path: Path) -> Path | None:
+    """Forest plot of the differences with their intervals (None without matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("compare.png skipped: needs matplotlib (pip install 'bopsurg[figures]')")
+        return None
+    # Scores on a common 0-1 scale (the table's deg / mm statistics are in the JSON).
+    keys = [k for k in rows[0][1] if k.startswith(("bop2", "recall_")) or k.endswith("_auc")]
+    fig, ax = plt.subplots(figsize=(6.4, 0.5 + 0.45 * len(keys) * len(rows)))
+    y = 0
+    ticks, labels = [], []
+    for other_dir, res in rows:
+        for key in keys:
+            c = res[key]
+            ax.errorbar(c.diff, y, xerr=[[c.diff - c.ci[0]], [c.ci[1] - c.diff]], fmt="o",
+                        color="C0" if c.ci[0] > 0 or c.ci[1] < 0 else "C7", capsize=3)  # fmt: skip
+            ticks.append(y)
+            labels.append(f"{key} ({other_dir.name})" if len(rows) > 1 else key)
+            y -= 1
+    ax.axvline(0.0, color="k", lw=0.8)
+    ax.set_yticks(ticks, labels)
+    ax.set_xlabel(f"difference to {base_dir.name} (95 % paired bootstrap interval)")
+    fig.tight_layout()
+    from bopsurg.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=150)
+    plt.close(fig)
+    return path

@@ -1,0 +1,85 @@
+"""``bopsurg eval`` statistics: bootstrap 95 % intervals of the paper's table, its recalls
+and AUCs (summary.json) and of the BOP24/BOP25 scores (scores.json)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from bopsurg.atomic import write_text
+from bopsurg.evaluation.bootstrap import (
+    SAMPLES_FILENAME,
+    DetectionSamples,
+    confidence_intervals,
+    json_strict,
+)
+from bopsurg.evaluation.bop24 import DetectionEvaluation
+from bopsurg.evaluation.summary_ci import (
+    TABLE_SAMPLES_FILENAME,
+    save_table_rows,
+    summary_intervals,
+    table_rows,
+)
+
+
+def write_intervals(
+    gt_rows: pd.DataFrame, det: DetectionEvaluation | None, args: argparse.Namespace
+) -> None:
+    """Save the BOP24 bootstrap samples (for ``bopsurg compare``) and, with ``--bootstrap N``,
+    add ``ci95`` and ``bootstrap`` to ``summary.json`` (the paper's table) and ``scores.json``
+    (BOP24/BOP25 keys) and print the intervals."""
+    out = Path(args.out)
+    samples = DetectionSamples.from_evaluation(det) if det is not None else None
+    if samples is not None:
+        samples.save(out / SAMPLES_FILENAME)
+    summary = json.loads((out / "summary.json").read_text())
+    save_table_rows(out / TABLE_SAMPLES_FILENAME, table_rows(gt_rows, float(summary["min_visib"])))
+    if args.bootstrap == 0:
+        return
+    t0 = time.perf_counter()
+    meta = {"replicates": args.bootstrap, "unit": args.ci_unit, "seed": args.seed}
+    table_ci = summary_intervals(
+        gt_rows, float(summary["min_visib"]), args.bootstrap, args.seed, args.ci_unit
+    )
+    _add_to_json(out / "summary.json", {"ci95": json_strict(table_ci), "bootstrap": meta})
+    print(f"\n95 % intervals ({args.bootstrap} bootstrap replicates by {args.ci_unit}):")
+    for m, stats in table_ci["table"].items():
+        text = ", ".join(
+            f"{k} {_num(summary['table'][m][k], 2)} [{_num(lo, 2)}, {_num(hi, 2)}]"
+            for k, (lo, hi) in stats.items()
+        )
+        print(f"  {m.upper():<6}{text}")
+    print(
+        "  recall "
+        + ", ".join(
+            f"{k} {_num(summary['recall'][k], 3)} [{_num(lo, 3)}, {_num(hi, 3)}]"
+            for k, (lo, hi) in table_ci["recall"].items()
+        )
+    )
+    if samples is not None and det is not None:
+        ci = confidence_intervals(samples, args.bootstrap, seed=args.seed, unit=args.ci_unit)
+        _add_to_json(out / "scores.json", {"ci95": json_strict(ci), "bootstrap": meta})
+        print("  BOP24/BOP25 6D detection:")
+        for key, (lo, hi) in ci.items():
+            print(f"    {key:<32}{det.scores[key]:.4f}  [{lo:.4f}, {hi:.4f}]")
+    print(f"  (bootstrap {time.perf_counter() - t0:.2f} s)")
+
+
+def _num(value: float | None, digits: int) -> str:
+    """A number for the printed intervals; n/a for a missing one (no instance)."""
+    if value is None or math.isnan(value):
+        return "n/a"
+    return f"{value:.{digits}f}"
+
+
+def _add_to_json(path: Path, extra: dict[str, Any]) -> None:
+    """Add keys to a JSON object file written by the evaluation (atomically)."""
+    content = json.loads(path.read_text())
+    content.update(extra)
+    write_text(path, json.dumps(content, indent=2, allow_nan=False) + "\n")

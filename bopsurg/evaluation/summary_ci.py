@@ -1,0 +1,185 @@
+"""Bootstrap 95 % intervals of the paper's table and the absolute-threshold scores.
+
+The same resampling as :mod:`bopsurg.evaluation.bootstrap` (images or scenes drawn with
+replacement, one weight per unit and replicate), applied to the GT instances of
+:func:`bopsurg.evaluation.summary.paper_summary` (``visib_fract ≥ min_visib``): weighted
+means, population standard deviations, medians (the resampled set's middle order
+statistics), recalls at absolute thresholds (missed instances fail) and ADD / ADD-S AUC,
+all replicates at once. Min and max get no interval (a bootstrap cannot go beyond them).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from bopsurg.atomic import atomic_path
+from bopsurg.errors import BopsurgError, InputError
+from bopsurg.evaluation.bootstrap import (
+    Comparison,
+    paired_comparisons,
+    percentile_interval,
+    resample_weights,
+)
+from bopsurg.evaluation.summary import ABS_THRESHOLDS, AUC_MAX_FRACTION, AUC_STEPS, TABLE_METRICS
+
+F64 = NDArray[np.float64]
+
+
+def _units(rows: pd.DataFrame, unit: str) -> NDArray[np.int64]:
+    keys = ["scene_id"] if unit == "scene" else ["scene_id", "im_id"]
+    return rows.groupby(keys, sort=True).ngroup().to_numpy(np.int64)
+
+
+def weighted_median(values: F64, weights: F64) -> F64:
+    """(B,) medians of ``values`` (N,) repeated by integer ``weights`` (B, N), as
+    ``np.median`` of the repeated values (mean of the two middle ones for an even count)."""
+    b, n = weights.shape
+    if n == 0:
+        return np.full(b, np.nan)
+    order = np.argsort(values, kind="stable")
+    v = values[order]
+    cum = np.cumsum(weights[:, order], axis=1).astype(np.int64)  # (B, N), whole counts
+    total = cum[:, -1]
+    lo, hi = (total - 1) // 2, total // 2  # 0-based positions of the middle elements
+    span = int(total.max()) + 2
+    rows = np.arange(b, dtype=np.int64)[:, None] * span
+    keys = (cum + rows).ravel()
+    # Element at position p: the first sorted index whose cumulative count exceeds p.
+    idx = np.searchsorted(keys, (np.c_[lo, hi] + rows).ravel(), side="right").reshape(b, 2)
+    idx = np.minimum(idx - np.arange(b)[:, None] * n, n - 1)
+    med = v[idx].mean(axis=1)
+    return np.where(total > 0, med, np.nan)
+
+
+#: Columns of the GT rows the table's replicates need (what ``bopsurg compare`` keeps).
+SAMPLE_COLUMNS = ("scene_id", "im_id", "gt_id", "visib_fract", "diameter",
+                  "re", "te", "mssd", "add", "adi")  # fmt: skip
+
+
+def table_rows(gt_rows: pd.DataFrame, min_visib: float) -> pd.DataFrame:
+    """The GT instances of the table (``visib_fract ≥ min_visib``), columns it needs."""
+    sel = gt_rows[gt_rows["visib_fract"] >= min_visib]
+    return sel[[c for c in SAMPLE_COLUMNS if c in sel]].reset_index(drop=True)
+
+
+def summary_replicates(rows: pd.DataFrame, weights: F64) -> dict[str, F64]:
+    """The table's numbers under each row of instance weights (B, R): ``{metric}_{mean|std|
+    median}``, ``recall_{label}``, ``{add|adi}_auc``; (B,) each."""
+    total = weights.sum(axis=1)
+    out: dict[str, F64] = {}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for m in TABLE_METRICS:
+            v = rows[m].to_numpy(np.float64)
+            ok = np.isfinite(v)
+            wv, vv = weights[:, ok], v[ok]
+            n = wv.sum(axis=1)
+            mean = wv @ vv / n
+            out[f"{m}_mean"] = mean
+            out[f"{m}_std"] = np.sqrt(np.maximum(wv @ (vv * vv) / n - mean * mean, 0.0))
+            out[f"{m}_median"] = weighted_median(vv, wv)
+        for col, th, label in ABS_THRESHOLDS:
+            hit = rows[col].to_numpy(np.float64) < th  # NaN (missed) is no hit
+            out[f"recall_{label}"] = weights @ hit / total
+        s = np.arange(1, AUC_STEPS + 1) / AUC_STEPS
+        max_th = AUC_MAX_FRACTION * rows["diameter"].to_numpy(np.float64)
+        for col in ("add", "adi"):
+            if col in rows:
+                e = rows[col].to_numpy(np.float64)
+                ratio = np.where(np.isnan(e), np.inf, e) / max_th
+                per_row = (ratio[None, :] < s[:, None]).mean(axis=0)  # each one's accuracy
+                out[f"{col}_auc"] = weights @ per_row / total
+    return out
+
+
+def row_weights(rows: pd.DataFrame, replicates: int, seed: int, unit: str) -> F64:
+    """(replicates, R) bootstrap weights of the rows, by their image or scene."""
+    if len(rows) == 0:
+        return np.zeros((replicates, 0))
+    return resample_weights(_units(rows, unit), replicates, seed)
+
+
+def summary_intervals(
+    gt_rows: pd.DataFrame,
+    min_visib: float,
+    replicates: int,
+    seed: int = 0,
+    unit: str = "image",
+) -> dict[str, Any]:
+    """95 % intervals of ``summary.json``'s numbers: ``{"table": {metric: {"mean", "std",
+    "median"}}, "recall": {label}, "add_auc", "adi_auc"}``, each ``(low, high)``.
+
+    Args:
+        gt_rows: The evaluation's GT rows (``scene_id``, ``im_id``, ``visib_fract``,
+            ``diameter`` and the matched errors, NaN when missed).
+        min_visib: Visibility threshold of the table.
+        replicates: Bootstrap replicates.
+        seed: Generator seed.
+        unit: ``"image"`` or ``"scene"``.
+    """
+    rows = table_rows(gt_rows, min_visib)
+    reps = summary_replicates(rows, row_weights(rows, replicates, seed, unit))
+    out: dict[str, Any] = {"table": {}, "recall": {}}
+    for m in TABLE_METRICS:
+        out["table"][m] = {
+            k: percentile_interval(reps[f"{m}_{k}"]) for k in ("mean", "std", "median")
+        }
+    for _, _, label in ABS_THRESHOLDS:
+        out["recall"][label] = percentile_interval(reps[f"recall_{label}"])
+    for col in ("add", "adi"):
+        if f"{col}_auc" in reps:
+            out[f"{col}_auc"] = percentile_interval(reps[f"{col}_auc"])
+    return out
+
+
+#: File in an evaluation folder with the table's GT rows (for ``bopsurg compare``).
+TABLE_SAMPLES_FILENAME = "bootstrap_table.npz"
+
+
+def save_table_rows(path: Path, rows: pd.DataFrame) -> None:
+    """Write the table's rows (npz, atomically)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **{c: rows[c].to_numpy() for c in rows.columns})
+
+
+def load_table_rows(path: Path) -> pd.DataFrame:
+    """Read rows written by :func:`save_table_rows`.
+
+    Raises:
+        InputError: Missing or unreadable file.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return pd.DataFrame({c: z[c] for c in z.files})
+    except FileNotFoundError:
+        raise InputError(f"{path}: missing (evaluate again with this bopsurg)") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not table samples of bopsurg eval ({exc})") from None
+
+
+def compare_tables(
+    a: pd.DataFrame, b: pd.DataFrame, replicates: int, seed: int = 0, unit: str = "image"
+) -> dict[str, Comparison]:
+    """Paired bootstrap comparison of the table's numbers of two evaluations of the same GT.
+
+    Raises:
+        BopsurgError: The evaluations are not on the same GT instances.
+    """
+    key = ["scene_id", "im_id", "gt_id"]
+    if len(a) != len(b) or not np.array_equal(a[key].to_numpy(), b[key].to_numpy()):
+        raise BopsurgError(
+            f"the evaluations' tables cover different GT instances ({len(a)} vs {len(b)}): "
+            "compare needs the same dataset split and --min-visib"
+        )
+    ones = np.ones((1, len(a)))
+    weights = row_weights(a, replicates, seed, unit)
+    return paired_comparisons(
+        summary_replicates(a, ones),
+        summary_replicates(b, ones),
+        summary_replicates(a, weights),
+        summary_replicates(b, weights),
+    )

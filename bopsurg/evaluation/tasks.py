@@ -1,0 +1,71 @@
+"""Which benchmark tasks ``bopsurg eval`` runs, and the BOP24 step added to an evaluation.
+
+Tasks and the inputs they need:
+
+- ``bop19``: 6D localization (AR), a pose results CSV;
+- ``bop24``: 6D detection (AP, BOP 2023-2025), a pose results CSV and the images of
+  ``test_targets_bop24.json`` (every image with GT when the file is absent);
+- ``coco-bbox``, ``coco-segm``: 2D detection / segmentation (COCO AP via pycocotools), a BOP
+  COCO results JSON with boxes / RLE masks, and ``scene_gt_coco.json`` in the scenes.
+
+``all`` (or no ``--task``) runs every task the inputs allow.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from bopsurg.errors import BopsurgError
+from bopsurg.evaluation.options import COCO_TASKS, POSE_TASKS, TASK_CHOICES
+
+if TYPE_CHECKING:  # light at import: the CLI reads the task names before running anything
+    from bopsurg.bop.dataset import BopDataset
+    from bopsurg.bop.results import PoseEstimates
+    from bopsurg.bop.targets import ImageTarget
+    from bopsurg.evaluation.bop24 import DetectionEvaluation
+
+__all__ = ["COCO_TASKS", "POSE_TASKS", "TASK_CHOICES", "add_detection_scores", "resolve_tasks"]
+
+
+def resolve_tasks(
+    choice: str | None, results_kind: str = "pose", allowed: Sequence[str] | None = None
+) -> tuple[str, ...]:
+    """The tasks to run for ``--task choice`` on results of ``results_kind`` (``"pose"`` or
+    ``"coco"``); ``allowed`` narrows the kind's tasks to what the results contain.
+
+    Raises:
+        BopsurgError: The task does not apply to these results.
+    """
+    if allowed is None:
+        allowed = POSE_TASKS if results_kind == "pose" else COCO_TASKS
+    allowed = tuple(allowed)
+    if choice in (None, "all"):
+        return allowed
+    if choice not in allowed:
+        raise BopsurgError(
+            f"--task {choice} needs other results: a {results_kind} results file allows "
+            f"{', '.join(allowed) or 'no task'}"
+        )
+    return (choice,)
+
+
+def add_detection_scores(
+    scores: dict[str, float],
+    tasks: Sequence[str],
+    dataset: BopDataset,
+    estimates: PoseEstimates,
+    image_targets: Sequence[ImageTarget] | None = None,
+) -> DetectionEvaluation | None:
+    """Add the BOP24 keys to ``scores`` when ``bop24`` is a task; drop the BOP19 keys when
+    ``bop19`` is not (the pose evaluation computes them anyway for the paper's table)."""
+    if "bop19" not in tasks:
+        for key in [k for k in scores if k.startswith("bop19_")]:
+            del scores[key]
+    if "bop24" not in tasks:
+        return None
+    from bopsurg.evaluation.bop24 import evaluate_bop24
+
+    det = evaluate_bop24(dataset, estimates, image_targets)
+    scores.update(det.scores)
+    return det
