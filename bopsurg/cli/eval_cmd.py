@@ -18,14 +18,10 @@ from bopsurg.cli.inputs import (
     load_detections_arg,
 )
 from bopsurg.errors import BopsurgError
-from bopsurg.evaluation.runner import (
-    INSTANCE_METRICS,
-    evaluate,
-    evaluate_distributed,
-    write_evaluation,
-)
+from bopsurg.evaluation.runner import evaluate, evaluate_distributed, write_evaluation
 from bopsurg.evaluation.summary import format_table
 from bopsurg.executors import make_executor
+from bopsurg.metrics.registry import METRICS, help_lines
 from bopsurg.plugins import available_plugins, load_plugin
 
 log = logging.getLogger(__name__)
@@ -37,8 +33,8 @@ Evaluate 6D pose estimates (a BOP19 results CSV) on a BOP dataset split.
 
 Writes into --out:
   errors.csv    one row per estimate: scene_id, im_id, obj_id, gt_id (-1 = no GT left for
-                it), score, visib_fract, re [deg], te [mm], mssd [mm], mspd [px], add [mm],
-                adi [mm] (ADD-S)
+                it), score, visib_fract, one column per metric (below), tip_visible,
+                tail_visible, view_angle_deg
   summary.json  the paper's table (N, mean, std, median, min, max of RE, TE, MSSD over GT
                 instances with visib_fract >= --min-visib), missed instances, recall at
                 MSSD < 1/2/5 mm and RE < 5/10 deg, ADD and ADD-S AUC (0-0.1 x diameter)
@@ -49,6 +45,9 @@ Writes into --out:
 Matching for errors.csv and the table: in each image, estimates in decreasing score order
 take the not-yet-matched GT instance of their object with the smallest MSSD (no threshold).
 The BOP scores use the reference's own rules (targets, valid GTs, strict thresholds).
+
+Metrics (--metrics; bopsurg.metrics.registry):
+{metrics}
 """
 
 
@@ -57,7 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "eval",
         help=HELP,
-        description=DESCRIPTION,
+        description=DESCRIPTION.format(metrics="\n".join(help_lines("  "))),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_dataset_and_results(p)
@@ -81,9 +80,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--metrics",
-        default=",".join(INSTANCE_METRICS),
-        help="comma-separated metrics of errors.csv (default: all; ADD-S 'adi' is the costly "
-        "one, about 0.5 us per model vertex and estimate)",
+        default=",".join(METRICS),
+        help="comma-separated metrics of errors.csv, listed above (default: all; mssd is "
+        "always computed: it decides the matching)",
     )
     p.add_argument("--vsd-delta", type=float, default=15.0, help="VSD tolerance delta, mm")
     p.add_argument(

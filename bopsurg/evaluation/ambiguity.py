@@ -27,8 +27,12 @@ from scipy.spatial.distance import pdist, squareform
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask
 from bopsurg.evaluation.summary import describe
+from bopsurg.metrics.registry import table_metrics
 
 F64 = NDArray[np.float64]
+
+#: Columns :func:`instance_ambiguity` adds to each GT row (and errors.csv), in order.
+AMBIGUITY_COLUMNS: tuple[str, ...] = ("tip_visible", "tail_visible", "view_angle_deg")
 
 #: Bins of the split tables.
 VIEW_ANGLE_BINS = (
@@ -98,14 +102,7 @@ def instance_ambiguity(
         gt_R, gt_t, gt_K: (G, 3, 3), (G, 3) mm and (G, 3, 3) of the same rows.
     """
     n = len(gt_rows)
-    out = pd.DataFrame(
-        {
-            "tip_visible": np.full(n, np.nan),
-            "tail_visible": np.full(n, np.nan),
-            "view_angle_deg": np.full(n, np.nan),
-        },
-        index=gt_rows.index,
-    )
+    out = pd.DataFrame({c: np.full(n, np.nan) for c in AMBIGUITY_COLUMNS}, index=gt_rows.index)
     obj = gt_rows["obj_id"].to_numpy()
     for obj_id in np.unique(obj):
         sel = np.flatnonzero(obj == obj_id)
@@ -140,11 +137,13 @@ def instance_ambiguity(
 
 
 def ambiguity_splits(rows: pd.DataFrame) -> dict[str, dict[str, dict[str, float]]]:
-    """The paper's statistics of RE, TE, MSSD split by ends visible, view angle, visibility.
+    """The paper's statistics of its table's metrics split by ends visible, view angle,
+    visibility.
 
     Args:
-        rows: GT rows of the table population (visib ≥ min_visib) with ``re``, ``te``,
-            ``mssd``, ``tip_visible``, ``tail_visible``, ``view_angle_deg``, ``visib_fract``.
+        rows: GT rows of the table population (visib ≥ min_visib) with the columns of the
+            table's metrics (:func:`~bopsurg.metrics.registry.table_metrics`: ``re``, ``te``,
+            ``mssd``), ``tip_visible``, ``tail_visible``, ``view_angle_deg``, ``visib_fract``.
 
     Returns:
         ``{split: {group: {"n", "re_median", "te_median", "mssd_median", "mssd_mean"}}}``.
@@ -170,7 +169,7 @@ def ambiguity_splits(rows: pd.DataFrame) -> dict[str, dict[str, dict[str, float]
         for label, mask in parts.items():
             g = r[mask.to_numpy()]
             stats = {"n": len(g)}
-            for m in ("re", "te", "mssd"):
+            for m in (m.name for m in table_metrics()):
                 stats[f"{m}_median"] = describe(g[m].to_numpy())["median"]
             stats["mssd_mean"] = describe(g["mssd"].to_numpy())["mean"]
             out[split][label] = stats
