@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.dataset import BopDataset, save_camera_json
-from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
+from bopsurg.bop.meshes import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import (
     PoseEstimates,
     check_results_against_dataset,

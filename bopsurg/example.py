@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 from bopsurg.atomic import write_text
 from bopsurg.bop.dataset import save_camera_json
 from bopsurg.bop.images import save_mask, save_rgb
-from bopsurg.bop.models import ObjectModel, compute_model_info, save_models_info, save_ply
+from bopsurg.bop.meshes import ObjectModel, compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.bop.scene import (
     CameraInfo,

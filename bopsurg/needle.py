@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 
 
 @dataclass(frozen=True)

@@ -61,7 +61,7 @@ from numpy.typing import NDArray
 from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import CameraSpec, LightSpec, RenderedFrame, SceneState
 from bopsurg.generators.kinematics import SceneLayout
 from bopsurg.generators.pybullet_scene import (

@@ -23,7 +23,7 @@ from bopsurg.bop._validate import Issues, get_dict, get_float, get_int
 from bopsurg.bop.dataset import BopScene, list_scene_ids, model_path
 from bopsurg.bop.images import image_size, load_mask
 from bopsurg.bop.jsonio import load_json
-from bopsurg.bop.models import load_ply, parse_models_info
+from bopsurg.bop.meshes import load_ply, parse_models_info
 from bopsurg.bop.scene import (
     CameraInfo,
     GtInfo,
