@@ -11,6 +11,8 @@ float64 form, raising :class:`~bopsurg.errors.ShapeError` with a one-line messag
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -27,6 +29,23 @@ ROTATION_ATOL = 1e-3
 def _finite(a: F64, name: str) -> F64:
     if not np.all(np.isfinite(a)):
         raise ShapeError("contains NaN or inf", field=name)
+    return a
+
+
+def as_column(value: ArrayLike, shape: tuple[int, ...], name: str, dtype: Any) -> NDArray[Any]:
+    """``value`` as an array of ``dtype`` and exactly ``shape`` (empty input takes the shape);
+    float columns must be finite.
+
+    Raises:
+        ShapeError: Another shape, or NaN / inf in a float column (``field`` = ``name``).
+    """
+    a = np.asarray(value, dtype=dtype)
+    if a.size == 0:
+        a = a.reshape(shape)
+    if a.shape != shape:
+        raise ShapeError(f"expected shape {shape}, got {a.shape}", field=name)
+    if a.dtype.kind == "f":
+        _finite(a, name)
     return a
 
 

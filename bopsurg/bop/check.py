@@ -25,9 +25,11 @@ from bopsurg.bop.images import image_size, load_mask
 from bopsurg.bop.jsonio import load_json
 from bopsurg.bop.meshes import load_ply, parse_models_info
 from bopsurg.bop.scene import (
+    EMPTY_BBOX,
     CameraInfo,
     GtInfo,
     GtPose,
+    bbox_from_mask,
     parse_scene_camera,
     parse_scene_gt,
     parse_scene_gt_info,
@@ -41,7 +43,6 @@ logger = logging.getLogger(__name__)
 #: Tolerance of ``visib_fract == px_count_visib / px_count_all``.
 VISIB_FRACT_ATOL = 1e-6
 TARGETS_FILENAME = "test_targets_bop19.json"
-_EMPTY_BBOX = (-1, -1, -1, -1)
 
 
 @dataclass(frozen=True)
@@ -125,12 +126,7 @@ def _rotation_text(R: NDArray[np.float64]) -> str:
 
 def _mask_stats(mask: NDArray[np.bool_]) -> tuple[int, tuple[int, int, int, int]]:
     """Pixel count and (x, y, w, h) box of a mask, w = x_max - x_min as the reference."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if len(rows) == 0:
-        return 0, _EMPTY_BBOX
-    cols = np.flatnonzero(mask.any(axis=0))
-    box = (int(cols[0]), int(rows[0]), int(cols[-1] - cols[0]), int(rows[-1] - rows[0]))
-    return int(np.count_nonzero(mask)), box
+    return int(np.count_nonzero(mask)), bbox_from_mask(mask)
 
 
 # --------------------------------------------------------------------------- models
@@ -290,7 +286,7 @@ def _check_gt_info_entry(path: Path, field: str, info: GtInfo, rep: _Report) -> 
                 f"{field}/{key}",
                 f"{getattr(info, key)} > px_count_all = {info.px_count_all}",
             )
-    if info.px_count_visib == 0 and info.bbox_visib != _EMPTY_BBOX:
+    if info.px_count_visib == 0 and info.bbox_visib != EMPTY_BBOX:
         rep.add(
             path,
             f"{field}/bbox_visib",

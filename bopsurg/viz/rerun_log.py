@@ -45,10 +45,10 @@ import numpy as np
 import pandas as pd
 
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.detections import Detections
 from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.bop.results import PoseEstimates
 from bopsurg.errors import BopsurgError
-from bopsurg.estimation import Detections
 from bopsurg.evaluation.summary import format_table
 from bopsurg.metrics.registry import rerun_metrics, table_metrics
 from bopsurg.silhouette import is_closed, project_silhouette
