@@ -159,16 +159,16 @@ def write_example_dataset(out_dir: str | Path, spec: ExampleSpec | None = None) 
             shaft = _shaft_mask(rng, centre) if occluded else None
             inside = large[HEIGHT : 2 * HEIGHT, WIDTH : 2 * WIDTH]
             visib = inside & ~shaft if shaft is not None else inside
-            info = instance_visibility_from_masks(large, visib)
+            gt_info = instance_visibility_from_masks(large, visib)
             cams[im_id] = CameraInfo(K=DEFAULT_K.copy(), depth_scale=0.1)
             gts[im_id] = [GtPose(obj_id=NEEDLE_OBJ_ID, R=R, t=t)]
-            infos[im_id] = [info]
+            infos[im_id] = [gt_info]
             save_mask(scene_dir / "mask" / f"{im_id:06d}_000000.png", inside)
             save_mask(scene_dir / "mask_visib" / f"{im_id:06d}_000000.png", visib)
             save_rgb(scene_dir / "rgb" / f"{im_id:06d}.png", _render_rgb(rng, visib, shaft))
 
             im_time = float(np.round(rng.uniform(0.04, 0.09), 4))
-            if info.px_count_visib > 0 and rng.random() >= spec.missed_fraction:
+            if gt_info.px_count_visib > 0 and rng.random() >= spec.missed_fraction:
                 R_e, t_e = _estimate(rng, R, t)
                 score = float(np.round(rng.uniform(0.5, 1.0), 4))
                 est_rows.append((scene_id, im_id, score, R_e, t_e, im_time))
@@ -216,4 +216,5 @@ def _render_rgb(
     if shaft is not None:
         img[shaft] = (70, 72, 76)
     img[needle] = (205, 208, 212)
-    return np.clip(img, 0, 255).astype(np.uint8)
+    result: np.ndarray = np.clip(img, 0, 255).astype(np.uint8)
+    return result

@@ -135,9 +135,9 @@ def _partial_to_outputs(
     dets: dict[ImageKey, Detections] = {}
     for key, bs in boxes.items():
         sel = (est.scene_id == key[0]) & (est.im_id == key[1])
-        b = np.array(bs, dtype=np.float64).reshape(-1, 4)
-        valid = np.isfinite(b).all(axis=1)
-        dets[key] = Detections(est.obj_id[sel][valid], est.score[sel][valid], b[valid])
+        xywh = np.array(bs, dtype=np.float64).reshape(-1, 4)
+        valid = np.isfinite(xywh).all(axis=1)
+        dets[key] = Detections(est.obj_id[sel][valid], est.score[sel][valid], xywh[valid])
     return est, dets
 
 

@@ -105,10 +105,10 @@ def load_detections(path: str | Path) -> tuple[dict[ImageKey, Detections], dict[
         assert bbox is not None
         if bbox[2] <= 0 or bbox[3] <= 0:
             issues(f"width and height must be positive, got {bbox[2:].tolist()}", f"{i}/bbox")
-        key = (scene, im)
-        rows.setdefault(key, []).append((obj, score, bbox))
+        image = (scene, im)
+        rows.setdefault(image, []).append((obj, score, bbox))
         time = d.get("time", -1)
-        times[key] = -1.0 if time is None else get_float(time, f"{i}/time", issues) or 0.0
+        times[image] = -1.0 if time is None else get_float(time, f"{i}/time", issues) or 0.0
     out = {
         key: Detections(
             np.array([r[0] for r in rs], np.int64),

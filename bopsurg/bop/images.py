@@ -127,9 +127,8 @@ def load_mask(path: str | Path) -> NDArray[np.bool_]:
         DatasetError: Missing or unreadable file.
     """
     im = _decode(path, cv2.IMREAD_UNCHANGED)
-    if im.ndim == 3:
-        return np.any(im[:, :, :3] != 0, axis=2)
-    return im != 0
+    mask: NDArray[np.bool_] = np.any(im[:, :, :3] != 0, axis=2) if im.ndim == 3 else im != 0
+    return mask
 
 
 def save_mask(path: str | Path, mask: ArrayLike) -> None:

@@ -18,6 +18,7 @@ silhouette degenerates to a line). For every GT instance this module computes:
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -43,7 +44,7 @@ VIEW_ANGLE_BINS = (
 VISIB_BINS = ((0.0, 0.5, "visib <0.5"), (0.5, 0.8, "visib 0.5-0.8"), (0.8, 1.01, "visib >=0.8"))
 
 
-def model_keypoints(model_info: Mapping, pts: F64) -> tuple[F64, F64]:
+def model_keypoints(model_info: Mapping[str, Any], pts: F64) -> tuple[F64, F64]:
     """(tip, tail) in the model frame, mm (see the module docstring)."""
     kp = model_info.get("keypoints")
     if isinstance(kp, Mapping) and "tip" in kp and "tail" in kp:
@@ -60,7 +61,7 @@ def model_keypoints(model_info: Mapping, pts: F64) -> tuple[F64, F64]:
     return pts[b].copy(), pts[a].copy()
 
 
-def model_plane_normal(model_info: Mapping, pts: F64) -> F64:
+def model_plane_normal(model_info: Mapping[str, Any], pts: F64) -> F64:
     """Unit normal of the model's plane (models_info ``plane_normal`` or least-variance axis)."""
     n = model_info.get("plane_normal")
     if n is None:
@@ -69,7 +70,8 @@ def model_plane_normal(model_info: Mapping, pts: F64) -> F64:
         n = vecs[:, 0]
         n = n if n[np.argmax(np.abs(n))] > 0 else -n  # deterministic sign
     n = np.asarray(n, dtype=np.float64)
-    return n / np.linalg.norm(n)
+    result: F64 = n / np.linalg.norm(n)
+    return result
 
 
 def view_angle_deg(R: F64, t: F64, normal: F64) -> F64:
@@ -78,7 +80,8 @@ def view_angle_deg(R: F64, t: F64, normal: F64) -> F64:
     n_cam = np.einsum("nij,j->ni", R, normal)
     ray = t / np.linalg.norm(t, axis=1, keepdims=True)
     s = np.abs(np.einsum("ni,ni->n", n_cam, ray))
-    return np.degrees(np.arcsin(np.clip(s, 0.0, 1.0)))
+    result: F64 = np.degrees(np.arcsin(np.clip(s, 0.0, 1.0)))
+    return result
 
 
 def _on_mask(mask: NDArray[np.bool_], uv: F64) -> bool:
@@ -168,9 +171,9 @@ def ambiguity_splits(rows: pd.DataFrame) -> dict[str, dict[str, dict[str, float]
         out[split] = {}
         for label, mask in parts.items():
             g = r[mask.to_numpy()]
-            stats = {"n": len(g)}
-            for m in (m.name for m in table_metrics()):
-                stats[f"{m}_median"] = describe(g[m].to_numpy())["median"]
+            stats: dict[str, float] = {"n": len(g)}
+            for metric in table_metrics():
+                stats[f"{metric.name}_median"] = describe(g[metric.name].to_numpy())["median"]
             stats["mssd_mean"] = describe(g["mssd"].to_numpy())["mean"]
             out[split][label] = stats
     return out

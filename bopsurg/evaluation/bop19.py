@@ -139,7 +139,8 @@ def sphere_projections_overlap(t_est: F64, t_gt: F64, radius: F64) -> NDArray[np
         pg = t_gt[:, :2] / zg[:, None]
         dist = np.linalg.norm(pe - pg, axis=1)
         thresh = radius * (1.0 / ze + 1.0 / zg)
-    return nonzero & (dist < thresh)
+    result: NDArray[np.bool_] = nonzero & (dist < thresh)
+    return result
 
 
 @dataclass(frozen=True)

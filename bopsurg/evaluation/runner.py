@@ -22,6 +22,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -225,7 +226,7 @@ class EvalUnit:
     scene_ids: tuple[int, ...]
     estimates: PoseEstimates
     targets: tuple[Target, ...] | None
-    options: dict
+    options: dict[str, Any]
 
 
 def _eval_unit(unit: EvalUnit, report: Callable[[int], None]) -> Evaluation:
@@ -315,7 +316,9 @@ def _json_safe(value: object) -> object:
     return value
 
 
-def write_evaluation(result: Evaluation, out_dir: str | Path, *, meta: dict | None = None) -> None:
+def write_evaluation(
+    result: Evaluation, out_dir: str | Path, *, meta: dict[str, object] | None = None
+) -> None:
     """Write ``errors.csv``, ``summary.json`` and ``scores.json`` into ``out_dir`` atomically."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -84,7 +84,8 @@ def re(R_est: ArrayLike, R_gt: ArrayLike) -> F64:
     prod = np.matmul(np.broadcast_to(R_e, (n, 3, 3)), np.broadcast_to(inv, (n, 3, 3)))
     error_cos = 0.5 * (np.trace(prod, axis1=1, axis2=2) - 1.0)
     error_cos = np.minimum(1.0, np.maximum(-1.0, error_cos))
-    return 180.0 * np.arccos(error_cos) / np.pi
+    result: F64 = 180.0 * np.arccos(error_cos) / np.pi
+    return result
 
 
 def te(t_est: ArrayLike, t_gt: ArrayLike) -> F64:

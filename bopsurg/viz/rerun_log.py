@@ -287,7 +287,8 @@ def _log_static(rr: Any, rec: Any, frames: pd.DataFrame, ev: Evaluation, worst: 
             static=True,
         )
     # the instances of the paper's table (visib_fract >= min_visib), so the medians agree
-    min_visib = float(ev.summary.get("min_visib", 0.0))
+    min_visib = ev.summary.get("min_visib", 0.0)
+    assert isinstance(min_visib, int | float)
     matched = ev.errors[(ev.errors["gt_id"] >= 0) & (ev.errors["visib_fract"] >= min_visib)]
     lines = [f"# Medians (matched estimates, visib_fract >= {min_visib:g}, as the table)", ""]
     for m in table_metrics():
