@@ -13,7 +13,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +37,8 @@ from bopsurg.bop.scene import (
 from bopsurg.bop.targets import parse_targets
 from bopsurg.errors import InputError
 from bopsurg.geometry import ROTATION_ATOL, is_rotation
+
+T = TypeVar("T")
 
 logger = logging.getLogger(__name__)
 
@@ -157,26 +159,21 @@ def _check_models(root: Path, rep: _Report) -> set[int] | None:
                 rep.add(info_path, field, f"last row must be 0 0 0 1, got {m[3].tolist()}")
     for obj_id in sorted(declared):
         path = model_path(models_dir, obj_id)
-        if not path.is_file():
-            rep.add(path, None, f"model of obj_id {obj_id} (listed in models_info.json) not found")
-            continue
-        try:
-            model = load_ply(path)
-        except InputError as e:
-            rep.error(e)
-            continue
-        if model.n_vertices == 0:
+        missing = f"model of obj_id {obj_id} (listed in models_info.json) not found"
+        model = _read_or_report(path, missing, load_ply, rep)
+        if model is not None and model.n_vertices == 0:
             rep.add(path, None, "model has no vertices")
     return declared
 
 
-def _image_size_or_report(path: Path, what: str, rep: _Report) -> tuple[int, int] | None:
-    """(width, height) of an image file, or None after reporting why it cannot be read."""
+def _read_or_report(path: Path, missing: str, read: Callable[[Path], T], rep: _Report) -> T | None:
+    """``read(path)``, or None after reporting why the file cannot be read (``missing`` if
+    it is not there, else the reader's one-line error)."""
     if not path.is_file():
-        rep.add(path, None, f"{what} not found")
+        rep.add(path, None, missing)
         return None
     try:
-        return image_size(path)
+        return read(path)
     except InputError as e:
         rep.error(e)
         return None
@@ -316,13 +313,9 @@ def _check_masks(
         ):
             if not present:
                 continue
-            if not path.is_file():
-                rep.add(path, None, f"{kind} of image {im_id}, gt_id {gt_id} not found")
-                continue
-            try:
-                m = load_mask(path)
-            except InputError as e:
-                rep.error(e)
+            missing = f"{kind} of image {im_id}, gt_id {gt_id} not found"
+            m = _read_or_report(path, missing, load_mask, rep)
+            if m is None:
                 continue
             if size is not None and (m.shape[1], m.shape[0]) != size:
                 rep.add(path, None, f"size {m.shape[1]}x{m.shape[0]} != image {size[0]}x{size[1]}")
@@ -383,16 +376,18 @@ def _check_images(
     for im_id in im_ids:
         size = expected
         if has_rgb:
-            got = _image_size_or_report(scene.rgb_path(im_id), f"image {im_id}", rep)
+            path = scene.rgb_path(im_id)
+            got = _read_or_report(path, f"image {im_id} not found", image_size, rep)
             if got is not None and expected is not None and got != expected:
                 msg = f"size {got[0]}x{got[1]} != {expected[0]}x{expected[1]} of camera.json"
-                rep.add(scene.rgb_path(im_id), None, msg)
+                rep.add(path, None, msg)
             size = size or got
         if has_depth:
-            got = _image_size_or_report(scene.depth_path(im_id), f"depth image {im_id}", rep)
+            path = scene.depth_path(im_id)
+            got = _read_or_report(path, f"depth image {im_id} not found", image_size, rep)
             if got is not None and size is not None and got != size:
                 msg = f"size {got[0]}x{got[1]} != image {size[0]}x{size[1]}"
-                rep.add(scene.depth_path(im_id), None, msg)
+                rep.add(path, None, msg)
         if gts is not None and im_id in gts and any(folders):
             im_infos = infos.get(im_id) if infos is not None else None
             _check_masks(scene, im_id, im_infos, len(gts[im_id]), size, folders, rep)

@@ -24,6 +24,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.atomic import write_bytes
+from bopsurg.bop.files import decode_utf8, read_bytes
 from bopsurg.errors import ResultsError, ShapeError
 from bopsurg.geometry import ROTATION_ATOL, is_rotation
 
@@ -361,18 +362,7 @@ def load_results(path: str | Path) -> PoseEstimates:
             image by more than 0.001 s). The message names the file, line and field.
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise ResultsError("file not found", path=p) from None
-    except IsADirectoryError:
-        raise ResultsError("is a folder, expected a CSV file", path=p) from None
-    except OSError as e:
-        raise ResultsError(f"cannot read file ({e.strerror})", path=p) from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise ResultsError(f"not UTF-8 text (byte {e.start})", path=p) from None
+    text = decode_utf8(read_bytes(p, ResultsError, expected="a CSV file"), p, ResultsError)
     # Universal newlines, as Python's text mode (and so the reference) reads them.
     lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
     if lines[-1] == "":
