@@ -22,6 +22,8 @@ demo: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check bopsurg generators models tests bench
+	$(BIN)/lint-imports --no-cache
+	$(BIN)/mypy --strict bopsurg
 
 test: lint
 	$(BIN)/python -m pytest -q

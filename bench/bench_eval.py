@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.dataset import BopDataset, save_camera_json
-from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
+from bopsurg.bop.meshes import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import (
     PoseEstimates,
     check_results_against_dataset,
@@ -34,8 +34,9 @@ from bopsurg.bop.scene import (
     save_scene_gt_info,
 )
 from bopsurg.bop.targets import enumerate_targets, save_targets
-from bopsurg.evaluation.runner import INSTANCE_METRICS, evaluate, write_evaluation
+from bopsurg.evaluation.runner import evaluate, write_evaluation
 from bopsurg.example import DEFAULT_K
+from bopsurg.metrics.registry import METRICS
 from bopsurg.needle import needle_mesh
 
 
@@ -122,7 +123,7 @@ def main() -> None:
     write_evaluation(res, Path(args.out) / "eval")
     times["write outputs"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    fast = [m for m in INSTANCE_METRICS if m != "adi"]
+    fast = [m for m in METRICS if m != "adi"]
     evaluate(ds, est, instance_metrics=fast)
     t_fast = time.perf_counter() - t0
     n_vertices = ds.model(1).pts.shape[0]

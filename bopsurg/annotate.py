@@ -22,6 +22,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -150,7 +151,7 @@ def annotate_scene(
     return count
 
 
-_WORKER: dict = {}
+_WORKER: dict[str, Any] = {}
 
 
 def _worker_init(root: str, split: str, split_type: str | None, renderer_name: str | None) -> None:

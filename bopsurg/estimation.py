@@ -24,59 +24,23 @@ from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
+from bopsurg.bop.detections import Detections
 from bopsurg.errors import BopsurgError, ShapeError
-from bopsurg.geometry import is_rotation
+from bopsurg.geometry import as_column, is_rotation
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
-
-def _column(value: ArrayLike, shape: tuple[int, ...], name: str, dtype: Any) -> NDArray[Any]:
-    a = np.asarray(value, dtype=dtype)
-    if a.size == 0:
-        a = a.reshape(shape)
-    if a.shape != shape:
-        raise ShapeError(f"expected shape {shape}, got {a.shape}", field=name)
-    if a.dtype.kind == "f" and not np.isfinite(a).all():
-        raise ShapeError("contains NaN or inf", field=name)
-    return a
-
-
-@dataclass(frozen=True, eq=False)
-class Detections:
-    """2D detections in one image.
-
-    Attributes:
-        obj_id: (N,) int64 object ids.
-        score: (N,) float64 confidences (higher = more confident).
-        bbox: (N, 4) float64 boxes ``(x, y, w, h)`` in px, BOP/COCO convention: (x, y) is the
-            top-left corner of the top-left pixel.
-    """
-
-    obj_id: I64
-    score: F64
-    bbox: F64
-
-    def __post_init__(self) -> None:
-        n = len(np.atleast_1d(np.asarray(self.obj_id)))
-        object.__setattr__(self, "obj_id", _column(self.obj_id, (n,), "obj_id", np.int64))
-        object.__setattr__(self, "score", _column(self.score, (n,), "score", np.float64))
-        object.__setattr__(self, "bbox", _column(self.bbox, (n, 4), "bbox", np.float64))
-
-    def __len__(self) -> int:
-        return len(self.obj_id)
-
-    @classmethod
-    def empty(cls) -> Detections:
-        """No detections."""
-        return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 4)))
-
-    def subset(self, index: ArrayLike) -> Detections:
-        """The rows selected by a boolean mask or an index array."""
-        idx = np.asarray(index)
-        return Detections(self.obj_id[idx], self.score[idx], self.bbox[idx])
+__all__ = [
+    "Detections",
+    "EstimatorFactory",
+    "PoseEstimator",
+    "PosePredictions",
+    "estimator_report",
+    "load_estimator",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -100,10 +64,10 @@ class PosePredictions:
 
     def __post_init__(self) -> None:
         n = len(np.atleast_1d(np.asarray(self.obj_id)))
-        object.__setattr__(self, "obj_id", _column(self.obj_id, (n,), "obj_id", np.int64))
-        object.__setattr__(self, "score", _column(self.score, (n,), "score", np.float64))
-        object.__setattr__(self, "R", _column(self.R, (n, 3, 3), "R", np.float64))
-        object.__setattr__(self, "t", _column(self.t, (n, 3), "t", np.float64))
+        object.__setattr__(self, "obj_id", as_column(self.obj_id, (n,), "obj_id", np.int64))
+        object.__setattr__(self, "score", as_column(self.score, (n,), "score", np.float64))
+        object.__setattr__(self, "R", as_column(self.R, (n, 3, 3), "R", np.float64))
+        object.__setattr__(self, "t", as_column(self.t, (n, 3), "t", np.float64))
         bbox = np.asarray(self.bbox, dtype=np.float64)
         if bbox.shape != (n, 4):  # NaN is allowed here (no box), so no finiteness check
             raise ShapeError(f"expected shape {(n, 4)}, got {bbox.shape}", field="bbox")

@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 from bopsurg.atomic import write_text
 from bopsurg.bop.dataset import save_camera_json
 from bopsurg.bop.images import save_mask, save_rgb
-from bopsurg.bop.models import ObjectModel, compute_model_info, save_models_info, save_ply
+from bopsurg.bop.meshes import ObjectModel, compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.bop.scene import (
     CameraInfo,
@@ -120,6 +120,67 @@ def _estimate(
     return R_est, t + dt
 
 
+#: One imitation estimate: scene_id, im_id, score, R, t mm, image time s.
+_EstRow = tuple[int, int, float, np.ndarray, np.ndarray, float]
+
+
+def _write_scene(
+    root: Path,
+    scene_id: int,
+    model: ObjectModel,
+    spec: ExampleSpec,
+    rng: np.random.Generator,
+    est_rows: list[_EstRow],
+) -> tuple[dict[int, list[GtPose]], dict[int, list[GtInfo]]]:
+    """One scene's images, masks and annotations; appends its imitation estimates to
+    ``est_rows``. Returns the scene's GT poses and gt_info per image."""
+    scene_dir = root / "test" / f"{scene_id:06d}"
+    cams: dict[int, CameraInfo] = {}
+    gts: dict[int, list[GtPose]] = {}
+    infos: dict[int, list[GtInfo]] = {}
+    for im_id in range(spec.images_per_scene):
+        R, t = _gt_pose(rng)
+        large = _fill_silhouette(model, DEFAULT_K, R, t)
+        centre = DEFAULT_K[:2, :2] @ (t[:2] / t[2]) + DEFAULT_K[:2, 2]
+        occluded = rng.random() < spec.occluded_fraction
+        shaft = _shaft_mask(rng, centre) if occluded else None
+        inside = large[HEIGHT : 2 * HEIGHT, WIDTH : 2 * WIDTH]
+        visib = inside & ~shaft if shaft is not None else inside
+        gt_info = instance_visibility_from_masks(large, visib)
+        cams[im_id] = CameraInfo(K=DEFAULT_K.copy(), depth_scale=0.1)
+        gts[im_id] = [GtPose(obj_id=NEEDLE_OBJ_ID, R=R, t=t)]
+        infos[im_id] = [gt_info]
+        save_mask(scene_dir / "mask" / f"{im_id:06d}_000000.png", inside)
+        save_mask(scene_dir / "mask_visib" / f"{im_id:06d}_000000.png", visib)
+        save_rgb(scene_dir / "rgb" / f"{im_id:06d}.png", _render_rgb(rng, visib, shaft))
+
+        im_time = float(np.round(rng.uniform(0.04, 0.09), 4))
+        if gt_info.px_count_visib > 0 and rng.random() >= spec.missed_fraction:
+            R_e, t_e = _estimate(rng, R, t)
+            score = float(np.round(rng.uniform(0.5, 1.0), 4))
+            est_rows.append((scene_id, im_id, score, R_e, t_e, im_time))
+            if rng.random() < spec.duplicate_fraction:
+                R_d, t_d = _estimate(rng, R, t + rng.normal(size=3) * 4.0)
+                est_rows.append((scene_id, im_id, score * 0.5, R_d, t_d, im_time))
+    save_scene_camera(scene_dir / "scene_camera.json", cams)
+    save_scene_gt(scene_dir / "scene_gt.json", gts)
+    save_scene_gt_info(scene_dir / "scene_gt_info.json", infos)
+    return gts, infos
+
+
+def _estimates(rows: list[_EstRow]) -> PoseEstimates:
+    n = len(rows)
+    return PoseEstimates.from_arrays(
+        scene_id=np.array([r[0] for r in rows], dtype=np.int64),
+        im_id=np.array([r[1] for r in rows], dtype=np.int64),
+        obj_id=np.full(n, NEEDLE_OBJ_ID, dtype=np.int64),
+        score=np.array([r[2] for r in rows]),
+        R=np.array([r[3] for r in rows]).reshape(n, 3, 3),
+        t=np.array([r[4] for r in rows]).reshape(n, 3),
+        time=np.array([r[5] for r in rows]),
+    )
+
+
 def write_example_dataset(out_dir: str | Path, spec: ExampleSpec | None = None) -> ExampleDataset:
     """Write the example dataset and its results CSV under ``out_dir``.
 
@@ -143,41 +204,11 @@ def write_example_dataset(out_dir: str | Path, spec: ExampleSpec | None = None) 
     save_models_info(root / "models" / "models_info.json", {NEEDLE_OBJ_ID: info})
     save_camera_json(root, DEFAULT_K, WIDTH, HEIGHT, depth_scale=0.1)
 
-    est_rows: list[tuple[int, int, float, np.ndarray, np.ndarray, float]] = []
+    est_rows: list[_EstRow] = []
     all_gt: dict[int, dict[int, list[GtPose]]] = {}
     all_info: dict[int, dict[int, list[GtInfo]]] = {}
     for scene_id in range(1, spec.scenes + 1):
-        scene_dir = root / "test" / f"{scene_id:06d}"
-        cams: dict[int, CameraInfo] = {}
-        gts: dict[int, list[GtPose]] = {}
-        infos: dict[int, list[GtInfo]] = {}
-        for im_id in range(spec.images_per_scene):
-            R, t = _gt_pose(rng)
-            large = _fill_silhouette(model, DEFAULT_K, R, t)
-            centre = DEFAULT_K[:2, :2] @ (t[:2] / t[2]) + DEFAULT_K[:2, 2]
-            occluded = rng.random() < spec.occluded_fraction
-            shaft = _shaft_mask(rng, centre) if occluded else None
-            inside = large[HEIGHT : 2 * HEIGHT, WIDTH : 2 * WIDTH]
-            visib = inside & ~shaft if shaft is not None else inside
-            info = instance_visibility_from_masks(large, visib)
-            cams[im_id] = CameraInfo(K=DEFAULT_K.copy(), depth_scale=0.1)
-            gts[im_id] = [GtPose(obj_id=NEEDLE_OBJ_ID, R=R, t=t)]
-            infos[im_id] = [info]
-            save_mask(scene_dir / "mask" / f"{im_id:06d}_000000.png", inside)
-            save_mask(scene_dir / "mask_visib" / f"{im_id:06d}_000000.png", visib)
-            save_rgb(scene_dir / "rgb" / f"{im_id:06d}.png", _render_rgb(rng, visib, shaft))
-
-            im_time = float(np.round(rng.uniform(0.04, 0.09), 4))
-            if info.px_count_visib > 0 and rng.random() >= spec.missed_fraction:
-                R_e, t_e = _estimate(rng, R, t)
-                score = float(np.round(rng.uniform(0.5, 1.0), 4))
-                est_rows.append((scene_id, im_id, score, R_e, t_e, im_time))
-                if rng.random() < spec.duplicate_fraction:
-                    R_d, t_d = _estimate(rng, R, t + rng.normal(size=3) * 4.0)
-                    est_rows.append((scene_id, im_id, score * 0.5, R_d, t_d, im_time))
-        save_scene_camera(scene_dir / "scene_camera.json", cams)
-        save_scene_gt(scene_dir / "scene_gt.json", gts)
-        save_scene_gt_info(scene_dir / "scene_gt_info.json", infos)
+        gts, infos = _write_scene(root, scene_id, model, spec, rng, est_rows)
         all_gt[scene_id] = gts
         all_info[scene_id] = infos
 
@@ -186,17 +217,8 @@ def write_example_dataset(out_dir: str | Path, spec: ExampleSpec | None = None) 
     write_text(root / "example_info.json", json.dumps(info_doc, indent=2) + "\n")
 
     n = len(est_rows)
-    est = PoseEstimates.from_arrays(
-        scene_id=np.array([r[0] for r in est_rows], dtype=np.int64),
-        im_id=np.array([r[1] for r in est_rows], dtype=np.int64),
-        obj_id=np.full(n, NEEDLE_OBJ_ID, dtype=np.int64),
-        score=np.array([r[2] for r in est_rows]),
-        R=np.array([r[3] for r in est_rows]).reshape(n, 3, 3),
-        t=np.array([r[4] for r in est_rows]).reshape(n, 3),
-        time=np.array([r[5] for r in est_rows]),
-    )
     results = out / f"{spec.method}_needle-test.csv"
-    save_results(results, est)
+    save_results(results, _estimates(est_rows))
     log.info(
         "example dataset: %s (%d images, %d estimates)",
         root,
@@ -216,4 +238,5 @@ def _render_rgb(
     if shaft is not None:
         img[shaft] = (70, 72, 76)
     img[needle] = (205, 208, 212)
-    return np.clip(img, 0, 255).astype(np.uint8)
+    result: np.ndarray = np.clip(img, 0, 255).astype(np.uint8)
+    return result

@@ -11,6 +11,8 @@ float64 form, raising :class:`~bopsurg.errors.ShapeError` with a one-line messag
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -27,6 +29,23 @@ ROTATION_ATOL = 1e-3
 def _finite(a: F64, name: str) -> F64:
     if not np.all(np.isfinite(a)):
         raise ShapeError("contains NaN or inf", field=name)
+    return a
+
+
+def as_column(value: ArrayLike, shape: tuple[int, ...], name: str, dtype: Any) -> NDArray[Any]:
+    """``value`` as an array of ``dtype`` and exactly ``shape`` (empty input takes the shape);
+    float columns must be finite.
+
+    Raises:
+        ShapeError: Another shape, or NaN / inf in a float column (``field`` = ``name``).
+    """
+    a = np.asarray(value, dtype=dtype)
+    if a.size == 0:
+        a = a.reshape(shape)
+    if a.shape != shape:
+        raise ShapeError(f"expected shape {shape}, got {a.shape}", field=name)
+    if a.dtype.kind == "f":
+        _finite(a, name)
     return a
 
 
@@ -76,7 +95,7 @@ def as_intrinsics(K: ArrayLike, n: int, name: str = "K") -> F64:
 
 def batch_size(*arrays: F64) -> int:
     """The common batch size of arrays whose first axis is N or 1."""
-    n = max(a.shape[0] for a in arrays)
+    n: int = max(a.shape[0] for a in arrays)
     for a in arrays:
         if a.shape[0] not in (1, n):
             raise ShapeError(f"batch sizes {[x.shape[0] for x in arrays]} do not broadcast")
@@ -97,7 +116,8 @@ def is_rotation(R: ArrayLike, atol: float = ROTATION_ATOL) -> NDArray[np.bool_]:
     gram = np.einsum("nki,nkj->nij", a, a)
     ortho = np.abs(gram - np.eye(3)).max(axis=(1, 2)) <= atol
     det = np.abs(np.linalg.det(a) - 1.0) <= atol
-    return ortho & det
+    result: NDArray[np.bool_] = ortho & det
+    return result
 
 
 def transform_pts(pts: F64, R: F64, t: F64) -> F64:
@@ -111,7 +131,8 @@ def transform_pts(pts: F64, R: F64, t: F64) -> F64:
     Returns:
         (N, V, 3) points in the camera frame, mm.
     """
-    return np.einsum("nij,vj->nvi", R, pts) + t[:, None, :]
+    result: F64 = np.einsum("nij,vj->nvi", R, pts) + t[:, None, :]
+    return result
 
 
 def project_pts(pts: F64, K: F64, R: F64, t: F64) -> F64:
@@ -131,7 +152,8 @@ def project_pts(pts: F64, K: F64, R: F64, t: F64) -> F64:
     """
     P = np.matmul(K, np.concatenate([R, t[:, :, None]], axis=2))  # (N, 3, 4)
     uvw = np.einsum("nij,vj->nvi", P[:, :, :3], pts) + P[:, None, :, 3]
-    return uvw[..., :2] / uvw[..., 2:3]
+    result: F64 = uvw[..., :2] / uvw[..., 2:3]
+    return result
 
 
 def rotation_about_axis(axis: ArrayLike, angle: float) -> F64:
@@ -174,11 +196,12 @@ def depth_to_distance(depth: ArrayLike, K: ArrayLike, origin: tuple[int, int] = 
     r0, c0 = origin
     xs = (np.arange(c0, c0 + w) - Km[0, 2]) / np.float64(Km[0, 0])
     ys = (np.arange(r0, r0 + h) - Km[1, 2]) / np.float64(Km[1, 1])
-    return np.sqrt(
+    result: F64 = np.sqrt(
         np.multiply(xs[None, :], d) ** 2
         + np.multiply(ys[:, None], d) ** 2
         + d.astype(np.float64) ** 2
     )
+    return result
 
 
 def intrinsics_from_fov(width: int, height: int, fov_y: float) -> F64:

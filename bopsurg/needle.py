@@ -13,10 +13,11 @@ Defaults follow the paper's needle (surgical_scene_facts): centre-line radius 10
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 
 
 @dataclass(frozen=True)
@@ -121,7 +122,7 @@ def needle_mesh(spec: NeedleSpec | None = None) -> ObjectModel:
     return ObjectModel(pts=vertices, faces=faces, normals=normals)
 
 
-def needle_keypoints(model: ObjectModel) -> dict[str, list[float]]:
+def needle_keypoints(model: ObjectModel) -> dict[str, Any]:
     """``models_info`` extras of a :func:`needle_mesh` model: tip, tail (mm) and plane normal.
 
     Used by the ambiguity analysis (``bopsurg.evaluation.ambiguity``); BOP readers ignore

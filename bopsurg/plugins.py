@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     import numpy as np
     from numpy.typing import NDArray
 
-    from bopsurg.bop.models import ObjectModel
+    from bopsurg.bop.meshes import ObjectModel
 
 log = logging.getLogger(__name__)
 

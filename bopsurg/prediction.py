@@ -18,11 +18,17 @@ import numpy as np
 from tqdm import tqdm
 
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.detections import save_detections
+from bopsurg.bop.detections import Detections, save_detections
 from bopsurg.bop.images import load_rgb
-from bopsurg.bop.results import HEADER, PoseEstimates, load_results, save_results
+from bopsurg.bop.results import (
+    HEADER,
+    PoseEstimates,
+    format_result_row,
+    load_results,
+    save_results,
+)
 from bopsurg.errors import BopsurgError, ResultsError
-from bopsurg.estimation import Detections, PoseEstimator, PosePredictions
+from bopsurg.estimation import PoseEstimator, PosePredictions
 
 log = logging.getLogger(__name__)
 
@@ -67,9 +73,10 @@ def image_targets(dataset: BopDataset, known: Iterable[int]) -> dict[ImageKey, t
 
 
 def _format_row(scene: int, im: int, pred: PosePredictions, k: int, secs: float) -> str:
-    R = " ".join(map(str, pred.R[k].reshape(9).tolist()))
-    t = " ".join(map(str, pred.t[k].tolist()))
-    return f"{scene},{im},{int(pred.obj_id[k])},{float(pred.score[k])},{R},{t},{secs}"
+    return format_result_row(
+        scene, im, int(pred.obj_id[k]), float(pred.score[k]), pred.R[k].reshape(9).tolist(),
+        pred.t[k].tolist(), secs,
+    )  # fmt: skip
 
 
 def _bbox_line(scene: int, im: int, pred: PosePredictions, k: int) -> str:
@@ -128,9 +135,9 @@ def _partial_to_outputs(
     dets: dict[ImageKey, Detections] = {}
     for key, bs in boxes.items():
         sel = (est.scene_id == key[0]) & (est.im_id == key[1])
-        b = np.array(bs, dtype=np.float64).reshape(-1, 4)
-        valid = np.isfinite(b).all(axis=1)
-        dets[key] = Detections(est.obj_id[sel][valid], est.score[sel][valid], b[valid])
+        xywh = np.array(bs, dtype=np.float64).reshape(-1, 4)
+        valid = np.isfinite(xywh).all(axis=1)
+        dets[key] = Detections(est.obj_id[sel][valid], est.score[sel][valid], xywh[valid])
     return est, dets
 
 

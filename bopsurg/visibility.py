@@ -23,15 +23,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from bopsurg.bop.scene import GtInfo
+from bopsurg.bop.scene import EMPTY_BBOX, GtInfo, bbox_from_mask
 from bopsurg.errors import ShapeError
 from bopsurg.geometry import depth_to_distance
 from bopsurg.metrics import estimate_visib_mask
 
 #: Visibility tolerance δ in mm used by BOP for most datasets (5 mm for ITODD and PBR images).
 DEFAULT_DELTA_MM = 15.0
-
-EMPTY_BBOX = (-1, -1, -1, -1)
 
 
 @dataclass(frozen=True)
@@ -47,26 +45,6 @@ class InstanceVisibility:
     mask: NDArray[np.bool_]
     mask_visib: NDArray[np.bool_]
     info: GtInfo
-
-
-def bbox_from_mask(mask: ArrayLike, offset: tuple[int, int] = (0, 0)) -> tuple[int, int, int, int]:
-    """BOP bounding box ``(x, y, w, h)`` of the nonzero pixels, ``w = x_max − x_min``.
-
-    Args:
-        mask: (H, W) mask.
-        offset: (x, y) subtracted from pixel coordinates (for the 3× canvas).
-
-    Returns:
-        The box, or ``(-1, -1, -1, -1)`` for an empty mask.
-    """
-    m = np.asarray(mask, dtype=bool)
-    rows = np.flatnonzero(m.any(axis=1))
-    if rows.size == 0:
-        return EMPTY_BBOX
-    cols = np.flatnonzero(m.any(axis=0))
-    x0, x1 = int(cols[0]) - offset[0], int(cols[-1]) - offset[0]
-    y0, y1 = int(rows[0]) - offset[1], int(rows[-1]) - offset[1]
-    return (x0, y0, x1 - x0, y1 - y0)
 
 
 def large_canvas(K: ArrayLike, width: int, height: int) -> tuple[NDArray[np.float64], int, int]:

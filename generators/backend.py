@@ -22,7 +22,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.kinematics import DEFAULT_LAYOUT, SceneLayout
 from bopsurg.needle import NeedleSpec
 

@@ -29,7 +29,7 @@ import pybullet as p
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.pybullet_backend import (
     PIXEL_OFFSETS,
     ClosesOnExit,

@@ -23,7 +23,7 @@ from bopsurg.atomic import write_text
 from bopsurg.bop.coco import write_detection_annotations
 from bopsurg.bop.dataset import BopDataset, save_camera_json
 from bopsurg.bop.jsonio import load_json
-from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
+from bopsurg.bop.meshes import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.scene import load_scene_gt, load_scene_gt_info
 from bopsurg.bop.targets import enumerate_targets, save_targets
 from bopsurg.errors import BopsurgError, InputError

@@ -1,6 +1,6 @@
 """Procedural assets of the suturing scene, built by code (no downloaded meshes).
 
-Everything here is plain numpy: meshes as :class:`~bopsurg.bop.models.ObjectModel` in **mm**
+Everything here is plain numpy: meshes as :class:`~bopsurg.bop.meshes.ObjectModel` in **mm**
 (BOP units) in each part's own frame, texture images as uint8 arrays, and part poses in the
 world frame in **metres** (ROS / CRTK SI). :mod:`bopsurg.generators.pybullet_backend` uploads
 them to pybullet (scaling the vertices by 1e-3), so the same models serve as BOP ``models/``.
@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import ARMS
 from bopsurg.generators.kinematics import SceneLayout, psm_link_frames, rot_x
 from bopsurg.needle import NeedleSpec, needle_mesh

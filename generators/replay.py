@@ -36,7 +36,7 @@ from bopsurg._version import __version__
 from bopsurg.atomic import remove_stale_temporaries, write_text
 from bopsurg.bop.images import save_depth, save_mask, save_rgb
 from bopsurg.bop.jsonio import load_json
-from bopsurg.bop.models import ObjectModel, load_ply
+from bopsurg.bop.meshes import ObjectModel, load_ply
 from bopsurg.bop.scene import (
     CameraInfo,
     GtInfo,

@@ -46,7 +46,7 @@ from bopsurg.bop.images import (
     save_rgb,
 )
 from bopsurg.bop.jsonio import load_json, save_json
-from bopsurg.bop.models import (
+from bopsurg.bop.meshes import (
     ObjectModel,
     compute_model_info,
     load_models_info,

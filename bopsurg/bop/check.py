@@ -24,11 +24,13 @@ from bopsurg.bop.coco import SCENE_GT_COCO, parse_scene_gt_coco
 from bopsurg.bop.dataset import BopScene, list_scene_ids, model_path
 from bopsurg.bop.images import image_size, load_mask
 from bopsurg.bop.jsonio import load_json
-from bopsurg.bop.models import load_ply, parse_models_info
+from bopsurg.bop.meshes import load_ply, parse_models_info
 from bopsurg.bop.scene import (
+    EMPTY_BBOX,
     CameraInfo,
     GtInfo,
     GtPose,
+    bbox_from_mask,
     parse_scene_camera,
     parse_scene_gt,
     parse_scene_gt_info,
@@ -37,13 +39,13 @@ from bopsurg.bop.targets import TARGETS_BOP24_FILENAME, parse_image_targets, par
 from bopsurg.errors import InputError
 from bopsurg.geometry import ROTATION_ATOL, is_rotation
 
-logger = logging.getLogger(__name__)
 T = TypeVar("T")
+
+logger = logging.getLogger(__name__)
 
 #: Tolerance of ``visib_fract == px_count_visib / px_count_all``.
 VISIB_FRACT_ATOL = 1e-6
 TARGETS_FILENAME = "test_targets_bop19.json"
-_EMPTY_BBOX = (-1, -1, -1, -1)
 
 
 @dataclass(frozen=True)
@@ -127,12 +129,7 @@ def _rotation_text(R: NDArray[np.float64]) -> str:
 
 def _mask_stats(mask: NDArray[np.bool_]) -> tuple[int, tuple[int, int, int, int]]:
     """Pixel count and (x, y, w, h) box of a mask, w = x_max - x_min as the reference."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if len(rows) == 0:
-        return 0, _EMPTY_BBOX
-    cols = np.flatnonzero(mask.any(axis=0))
-    box = (int(cols[0]), int(rows[0]), int(cols[-1] - cols[0]), int(rows[-1] - rows[0]))
-    return int(np.count_nonzero(mask)), box
+    return int(np.count_nonzero(mask)), bbox_from_mask(mask)
 
 
 # --------------------------------------------------------------------------- models
@@ -163,26 +160,21 @@ def _check_models(root: Path, rep: _Report) -> set[int] | None:
                 rep.add(info_path, field, f"last row must be 0 0 0 1, got {m[3].tolist()}")
     for obj_id in sorted(declared):
         path = model_path(models_dir, obj_id)
-        if not path.is_file():
-            rep.add(path, None, f"model of obj_id {obj_id} (listed in models_info.json) not found")
-            continue
-        try:
-            model = load_ply(path)
-        except InputError as e:
-            rep.error(e)
-            continue
-        if model.n_vertices == 0:
+        missing = f"model of obj_id {obj_id} (listed in models_info.json) not found"
+        model = _read_or_report(path, missing, load_ply, rep)
+        if model is not None and model.n_vertices == 0:
             rep.add(path, None, "model has no vertices")
     return declared
 
 
-def _image_size_or_report(path: Path, what: str, rep: _Report) -> tuple[int, int] | None:
-    """(width, height) of an image file, or None after reporting why it cannot be read."""
+def _read_or_report(path: Path, missing: str, read: Callable[[Path], T], rep: _Report) -> T | None:
+    """``read(path)``, or None after reporting why the file cannot be read (``missing`` if
+    it is not there, else the reader's one-line error)."""
     if not path.is_file():
-        rep.add(path, None, f"{what} not found")
+        rep.add(path, None, missing)
         return None
     try:
-        return image_size(path)
+        return read(path)
     except InputError as e:
         rep.error(e)
         return None
@@ -292,7 +284,7 @@ def _check_gt_info_entry(path: Path, field: str, info: GtInfo, rep: _Report) -> 
                 f"{field}/{key}",
                 f"{getattr(info, key)} > px_count_all = {info.px_count_all}",
             )
-    if info.px_count_visib == 0 and info.bbox_visib != _EMPTY_BBOX:
+    if info.px_count_visib == 0 and info.bbox_visib != EMPTY_BBOX:
         rep.add(
             path,
             f"{field}/bbox_visib",
@@ -322,13 +314,9 @@ def _check_masks(
         ):
             if not present:
                 continue
-            if not path.is_file():
-                rep.add(path, None, f"{kind} of image {im_id}, gt_id {gt_id} not found")
-                continue
-            try:
-                m = load_mask(path)
-            except InputError as e:
-                rep.error(e)
+            missing = f"{kind} of image {im_id}, gt_id {gt_id} not found"
+            m = _read_or_report(path, missing, load_mask, rep)
+            if m is None:
                 continue
             if size is not None and (m.shape[1], m.shape[0]) != size:
                 rep.add(path, None, f"size {m.shape[1]}x{m.shape[0]} != image {size[0]}x{size[1]}")
@@ -389,16 +377,18 @@ def _check_images(
     for im_id in im_ids:
         size = expected
         if has_rgb:
-            got = _image_size_or_report(scene.rgb_path(im_id), f"image {im_id}", rep)
+            path = scene.rgb_path(im_id)
+            got = _read_or_report(path, f"image {im_id} not found", image_size, rep)
             if got is not None and expected is not None and got != expected:
                 msg = f"size {got[0]}x{got[1]} != {expected[0]}x{expected[1]} of camera.json"
-                rep.add(scene.rgb_path(im_id), None, msg)
+                rep.add(path, None, msg)
             size = size or got
         if has_depth:
-            got = _image_size_or_report(scene.depth_path(im_id), f"depth image {im_id}", rep)
+            path = scene.depth_path(im_id)
+            got = _read_or_report(path, f"depth image {im_id} not found", image_size, rep)
             if got is not None and size is not None and got != size:
                 msg = f"size {got[0]}x{got[1]} != image {size[0]}x{size[1]}"
-                rep.add(scene.depth_path(im_id), None, msg)
+                rep.add(path, None, msg)
         if gts is not None and im_id in gts and any(folders):
             im_infos = infos.get(im_id) if infos is not None else None
             _check_masks(scene, im_id, im_infos, len(gts[im_id]), size, folders, rep)

@@ -16,7 +16,7 @@ from typing import Any
 
 from bopsurg.bop.images import image_size as _image_size
 from bopsurg.bop.jsonio import load_json, save_json
-from bopsurg.bop.models import ObjectModel, load_models_info, load_ply
+from bopsurg.bop.meshes import ObjectModel, load_models_info, load_ply
 from bopsurg.bop.scene import (
     CameraInfo,
     GtInfo,

@@ -5,20 +5,25 @@ with ``bbox = [x, y, w, h]`` in px (COCO convention), ``category_id`` the object
 ``time`` the detector's run time for the whole image in s (-1 = unknown). GDRNPP's test
 pipeline reads boxes in this shape, so boxes from any detector plug into ``bopsurg predict
 --boxes``; ``bopsurg predict --detections-out`` writes the boxes our detector found.
+
+:class:`Detections` (the boxes of one image) lives here, with its file format; the estimator
+protocol (:mod:`bopsurg.estimation`) takes and re-exports it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.bop._validate import Issues, get_dict, get_float, get_floats, get_int, get_list
 from bopsurg.bop.jsonio import load_json, save_json
 from bopsurg.errors import BopsurgError, ResultsError
-from bopsurg.estimation import Detections
+from bopsurg.geometry import as_column
 
 if TYPE_CHECKING:
     from bopsurg.bop.dataset import BopDataset
@@ -26,6 +31,43 @@ if TYPE_CHECKING:
 _KEYS = ("scene_id", "image_id", "category_id", "score", "bbox")
 
 ImageKey = tuple[int, int]
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+@dataclass(frozen=True, eq=False)
+class Detections:
+    """2D detections in one image.
+
+    Attributes:
+        obj_id: (N,) int64 object ids.
+        score: (N,) float64 confidences (higher = more confident).
+        bbox: (N, 4) float64 boxes ``(x, y, w, h)`` in px, BOP/COCO convention: (x, y) is the
+            top-left corner of the top-left pixel.
+    """
+
+    obj_id: I64
+    score: F64
+    bbox: F64
+
+    def __post_init__(self) -> None:
+        n = len(np.atleast_1d(np.asarray(self.obj_id)))
+        object.__setattr__(self, "obj_id", as_column(self.obj_id, (n,), "obj_id", np.int64))
+        object.__setattr__(self, "score", as_column(self.score, (n,), "score", np.float64))
+        object.__setattr__(self, "bbox", as_column(self.bbox, (n, 4), "bbox", np.float64))
+
+    def __len__(self) -> int:
+        return len(self.obj_id)
+
+    @classmethod
+    def empty(cls) -> Detections:
+        """No detections."""
+        return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 4)))
+
+    def subset(self, index: ArrayLike) -> Detections:
+        """The rows selected by a boolean mask or an index array."""
+        idx = np.asarray(index)
+        return Detections(self.obj_id[idx], self.score[idx], self.bbox[idx])
 
 
 def load_detections(path: str | Path) -> tuple[dict[ImageKey, Detections], dict[ImageKey, float]]:
@@ -63,10 +105,10 @@ def load_detections(path: str | Path) -> tuple[dict[ImageKey, Detections], dict[
         assert bbox is not None
         if bbox[2] <= 0 or bbox[3] <= 0:
             issues(f"width and height must be positive, got {bbox[2:].tolist()}", f"{i}/bbox")
-        key = (scene, im)
-        rows.setdefault(key, []).append((obj, score, bbox))
+        image = (scene, im)
+        rows.setdefault(image, []).append((obj, score, bbox))
         time = d.get("time", -1)
-        times[key] = -1.0 if time is None else get_float(time, f"{i}/time", issues) or 0.0
+        times[image] = -1.0 if time is None else get_float(time, f"{i}/time", issues) or 0.0
     out = {
         key: Detections(
             np.array([r[0] for r in rs], np.int64),

@@ -21,26 +21,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.atomic import write_bytes
+from bopsurg.bop.files import read_bytes
 from bopsurg.errors import DatasetError, ShapeError
 
 #: Largest value a 16-bit depth PNG can store.
 DEPTH_MAX = 65535
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise DatasetError("image not found", path=path) from None
-    except IsADirectoryError:
-        raise DatasetError("is a folder, expected an image file", path=path) from None
-    except OSError as e:
-        raise DatasetError(f"cannot read image ({e.strerror})", path=path) from None
-
-
 def _decode(path: str | Path, flags: int) -> NDArray[np.generic]:
     p = Path(path)
-    data = _read_bytes(p)
+    data = read_bytes(p, DatasetError, expected="an image file", noun="image")
     im = None
     if data:
         buf = np.frombuffer(data, dtype=np.uint8)
@@ -127,9 +117,8 @@ def load_mask(path: str | Path) -> NDArray[np.bool_]:
         DatasetError: Missing or unreadable file.
     """
     im = _decode(path, cv2.IMREAD_UNCHANGED)
-    if im.ndim == 3:
-        return np.any(im[:, :, :3] != 0, axis=2)
-    return im != 0
+    mask: NDArray[np.bool_] = np.any(im[:, :, :3] != 0, axis=2) if im.ndim == 3 else im != 0
+    return mask
 
 
 def save_mask(path: str | Path, mask: ArrayLike) -> None:

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from bopsurg.atomic import write_bytes
+from bopsurg.bop.files import decode_utf8, read_bytes
 from bopsurg.errors import DatasetError
 
 _GZIP_MAGIC = b"\x1f\x8b"
@@ -57,23 +58,13 @@ def load_json(path: str | Path, *, keys_to_int: bool = False) -> Any:
             gives the line and column of the syntax error).
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise DatasetError("file not found", path=p) from None
-    except IsADirectoryError:
-        raise DatasetError("is a folder, expected a JSON file", path=p) from None
-    except OSError as e:
-        raise DatasetError(f"cannot read file ({e.strerror})", path=p) from None
+    raw = read_bytes(p, DatasetError, expected="a JSON file")
     if raw.startswith(_GZIP_MAGIC):
         try:
             raw = gzip.decompress(raw)
         except (OSError, EOFError, zlib.error) as e:
             raise DatasetError(f"corrupt gzip data ({e})", path=p) from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise DatasetError(f"not UTF-8 text (byte {e.start})", path=p) from None
+    text = decode_utf8(raw, p, DatasetError)
     if not text.strip():
         raise DatasetError("empty file, expected JSON", path=p)
     hook = _keys_to_int_hook if keys_to_int else None

@@ -24,6 +24,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.atomic import write_bytes
+from bopsurg.bop.files import decode_utf8, read_bytes
 from bopsurg.errors import ResultsError, ShapeError
 from bopsurg.geometry import ROTATION_ATOL, is_rotation
 
@@ -361,18 +362,7 @@ def load_results(path: str | Path) -> PoseEstimates:
             image by more than 0.001 s). The message names the file, line and field.
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise ResultsError("file not found", path=p) from None
-    except IsADirectoryError:
-        raise ResultsError("is a folder, expected a CSV file", path=p) from None
-    except OSError as e:
-        raise ResultsError(f"cannot read file ({e.strerror})", path=p) from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise ResultsError(f"not UTF-8 text (byte {e.start})", path=p) from None
+    text = decode_utf8(read_bytes(p, ResultsError, expected="a CSV file"), p, ResultsError)
     # Universal newlines, as Python's text mode (and so the reference) reads them.
     lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
     if lines[-1] == "":
@@ -401,8 +391,23 @@ def load_results(path: str | Path) -> PoseEstimates:
     return PoseEstimates(scene, im, obj, score, R_flat.reshape(-1, 3, 3), t, time, line_no)
 
 
-def _format_time(value: float) -> str:
-    return "-1" if value == -1 else str(float(value))
+def format_result_row(
+    scene_id: int,
+    im_id: int,
+    obj_id: int,
+    score: float,
+    R: Sequence[float],
+    t: Sequence[float],
+    time: float,
+) -> str:
+    """One line of a BOP19 results CSV (no newline): Python's ``str`` of each value (shortest
+    round-trip repr), ``R`` (9 values, row-major) and ``t`` (3 values, mm) space-separated,
+    time in s with ``-1`` for unknown."""
+    time_text = "-1" if time == -1 else str(float(time))
+    return (
+        f"{scene_id},{im_id},{obj_id},{score},{' '.join(map(str, R))},"
+        f"{' '.join(map(str, t))},{time_text}"
+    )
 
 
 def save_results(
@@ -424,7 +429,7 @@ def save_results(
     R = est.R.reshape(n, 9).tolist()
     t = est.t.tolist()
     out = [HEADER]
-    for s, i, o, sc, r, tt, tm in zip(
+    for row in zip(
         est.scene_id.tolist(),
         est.im_id.tolist(),
         est.obj_id.tolist(),
@@ -434,9 +439,7 @@ def save_results(
         times.tolist(),
         strict=True,
     ):
-        out.append(
-            f"{s},{i},{o},{sc},{' '.join(map(str, r))},{' '.join(map(str, tt))},{_format_time(tm)}"
-        )
+        out.append(format_result_row(*row))
     write_bytes(path, "\n".join(out).encode("utf-8"))
 
 

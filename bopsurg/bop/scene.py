@@ -154,11 +154,38 @@ class GtPose:
     __hash__ = None  # type: ignore[assignment]  # holds arrays
 
 
-def _bbox(value: Sequence[int], name: str) -> tuple[int, int, int, int]:
-    box = tuple(int(v) for v in value)
+Box = tuple[int, int, int, int]
+
+#: The box of an instance with nothing visible.
+EMPTY_BBOX: Box = (-1, -1, -1, -1)
+
+
+def _bbox(value: Sequence[int], name: str) -> Box:
+    box = [int(v) for v in value]
     if len(box) != 4:
         raise ShapeError(f"expected 4 integers (x, y, w, h), got {len(box)}", field=name)
-    return box  # type: ignore[return-value]
+    return (box[0], box[1], box[2], box[3])
+
+
+def bbox_from_mask(mask: ArrayLike, offset: tuple[int, int] = (0, 0)) -> Box:
+    """BOP bounding box ``(x, y, w, h)`` px of the nonzero pixels, ``w = x_max − x_min``.
+
+    Args:
+        mask: (H, W) mask.
+        offset: (x, y) subtracted from pixel coordinates (e.g. for a canvas larger than the
+            image).
+
+    Returns:
+        The box, or :data:`EMPTY_BBOX` for an empty mask.
+    """
+    m = np.asarray(mask, dtype=bool)
+    rows = np.flatnonzero(m.any(axis=1))
+    if rows.size == 0:
+        return EMPTY_BBOX
+    cols = np.flatnonzero(m.any(axis=0))
+    x0, x1 = int(cols[0]) - offset[0], int(cols[-1]) - offset[0]
+    y0, y1 = int(rows[0]) - offset[1], int(rows[-1]) - offset[1]
+    return (x0, y0, x1 - x0, y1 - y0)
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,10 @@ from bopsurg.errors import BopsurgError
 
 if TYPE_CHECKING:
     from bopsurg.cli.commands import Subparsers
-    from bopsurg.evaluation.bootstrap import DetectionSamples
+    from bopsurg.evaluation.bootstrap import Comparison, DetectionSamples
+
+    #: One compared evaluation: its folder and the comparison of each number with the base.
+    Compared = tuple[Path, dict[str, Comparison]]
 
 HELP = help_of("compare")
 
@@ -71,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         "bootstrap": {"replicates": args.bootstrap, "unit": args.ci_unit, "seed": args.seed},
         "comparisons": {},
     }
-    rows = []
+    rows: list[Compared] = []
     for other_dir in map(Path, args.evals[1:]):
         other_table = load_table_rows(other_dir / TABLE_SAMPLES_FILENAME)
         other = _bop24_samples(other_dir)
@@ -103,7 +106,7 @@ def _bop24_samples(eval_dir: Path) -> DetectionSamples | None:
     return DetectionSamples.load(path) if path.exists() else None
 
 
-def _table(base_dir: Path, rows: list, replicates: int) -> str:
+def _table(base_dir: Path, rows: list[Compared], replicates: int) -> str:
     """The printed comparison (a p-value of 0 is below the bootstrap's resolution)."""
     lines = []
     for other_dir, res in rows:
@@ -119,7 +122,7 @@ def _table(base_dir: Path, rows: list, replicates: int) -> str:
     return "\n".join(lines)
 
 
-def _plot(base_dir: Path, rows: list, path: Path) -> Path | None:
+def _plot(base_dir: Path, rows: list[Compared], path: Path) -> Path | None:
     """Forest plot of the differences with their intervals (None without matplotlib)."""
     try:
         import matplotlib

@@ -19,6 +19,7 @@ from bopsurg.cli.inputs import (
 )
 from bopsurg.errors import BopsurgError
 from bopsurg.evaluation.options import TASK_CHOICES
+from bopsurg.metrics.registry import METRICS, help_lines
 from bopsurg.plugins import DepthRenderer, available_plugins, load_plugin
 
 if TYPE_CHECKING:
@@ -36,8 +37,8 @@ the results file is recognised by its content.
 
 Writes into --out:
   errors.csv    one row per estimate: scene_id, im_id, obj_id, gt_id (-1 = no GT left for
-                it), score, visib_fract, re [deg], te [mm], mssd [mm], mspd [px], add [mm],
-                adi [mm] (ADD-S)
+                it), score, visib_fract, one column per metric (below), tip_visible,
+                tail_visible, view_angle_deg
   summary.json  the paper's table (N, mean, std, median, min, max of RE, TE, MSSD over GT
                 instances with visib_fract >= --min-visib), missed instances, recall at
                 MSSD < 1/2/5 mm and RE < 5/10 deg, ADD and ADD-S AUC (0-0.1 x diameter);
@@ -54,12 +55,10 @@ Writes into --out:
 Matching for errors.csv and the table: in each image, estimates in decreasing score order
 take the not-yet-matched GT instance of their object with the smallest MSSD (no threshold).
 The BOP scores use the reference's own rules (targets, valid GTs, strict thresholds).
+
+Metrics (--metrics; bopsurg.metrics.registry):
+{metrics}
 """
-
-
-#: Default of --metrics: every instance metric of bopsurg.evaluation.runner (a test keeps them
-#: equal; importing the runner here would make 'bopsurg eval --help' load pandas and scipy).
-METRICS = "re,te,mssd,mspd,add,adi"
 
 
 def register(sub: Subparsers) -> None:
@@ -67,7 +66,7 @@ def register(sub: Subparsers) -> None:
     p = sub.add_parser(
         "eval",
         help=HELP,
-        description=DESCRIPTION,
+        description=DESCRIPTION.format(metrics="\n".join(help_lines("  "))),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_dataset_and_results(p)
@@ -105,9 +104,9 @@ def register(sub: Subparsers) -> None:
     )
     p.add_argument(
         "--metrics",
-        default=METRICS,
-        help=f"comma-separated metrics of errors.csv (default: all, {METRICS}; ADD-S 'adi' "
-        "is the costly one, about 0.5 us per model vertex and estimate)",
+        default=",".join(METRICS),
+        help="comma-separated metrics of errors.csv, listed above (default: all; mssd is "
+        "always computed: it decides the matching)",
     )
     p.add_argument("--vsd-delta", type=float, default=15.0, help="VSD tolerance delta, mm")
     p.add_argument(
@@ -210,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
             **options,
         )
     det = add_detection_scores(result.scores, tasks, dataset, est, image_targets)
-    meta = {
+    meta: dict[str, object] = {
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),
         "split": dataset.split_dir.name,

@@ -18,6 +18,7 @@ silhouette degenerates to a line). For every GT instance this module computes:
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -27,8 +28,12 @@ from scipy.spatial.distance import pdist, squareform
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask
 from bopsurg.evaluation.summary import describe
+from bopsurg.metrics.registry import table_metrics
 
 F64 = NDArray[np.float64]
+
+#: Columns :func:`instance_ambiguity` adds to each GT row (and errors.csv), in order.
+AMBIGUITY_COLUMNS: tuple[str, ...] = ("tip_visible", "tail_visible", "view_angle_deg")
 
 #: Bins of the split tables.
 VIEW_ANGLE_BINS = (
@@ -39,7 +44,7 @@ VIEW_ANGLE_BINS = (
 VISIB_BINS = ((0.0, 0.5, "visib <0.5"), (0.5, 0.8, "visib 0.5-0.8"), (0.8, 1.01, "visib >=0.8"))
 
 
-def model_keypoints(model_info: Mapping, pts: F64) -> tuple[F64, F64]:
+def model_keypoints(model_info: Mapping[str, Any], pts: F64) -> tuple[F64, F64]:
     """(tip, tail) in the model frame, mm (see the module docstring)."""
     kp = model_info.get("keypoints")
     if isinstance(kp, Mapping) and "tip" in kp and "tail" in kp:
@@ -56,7 +61,7 @@ def model_keypoints(model_info: Mapping, pts: F64) -> tuple[F64, F64]:
     return pts[b].copy(), pts[a].copy()
 
 
-def model_plane_normal(model_info: Mapping, pts: F64) -> F64:
+def model_plane_normal(model_info: Mapping[str, Any], pts: F64) -> F64:
     """Unit normal of the model's plane (models_info ``plane_normal`` or least-variance axis)."""
     n = model_info.get("plane_normal")
     if n is None:
@@ -65,7 +70,8 @@ def model_plane_normal(model_info: Mapping, pts: F64) -> F64:
         n = vecs[:, 0]
         n = n if n[np.argmax(np.abs(n))] > 0 else -n  # deterministic sign
     n = np.asarray(n, dtype=np.float64)
-    return n / np.linalg.norm(n)
+    result: F64 = n / np.linalg.norm(n)
+    return result
 
 
 def view_angle_deg(R: F64, t: F64, normal: F64) -> F64:
@@ -74,7 +80,8 @@ def view_angle_deg(R: F64, t: F64, normal: F64) -> F64:
     n_cam = np.einsum("nij,j->ni", R, normal)
     ray = t / np.linalg.norm(t, axis=1, keepdims=True)
     s = np.abs(np.einsum("ni,ni->n", n_cam, ray))
-    return np.degrees(np.arcsin(np.clip(s, 0.0, 1.0)))
+    result: F64 = np.degrees(np.arcsin(np.clip(s, 0.0, 1.0)))
+    return result
 
 
 def _on_mask(mask: NDArray[np.bool_], uv: F64) -> bool:
@@ -98,14 +105,7 @@ def instance_ambiguity(
         gt_R, gt_t, gt_K: (G, 3, 3), (G, 3) mm and (G, 3, 3) of the same rows.
     """
     n = len(gt_rows)
-    out = pd.DataFrame(
-        {
-            "tip_visible": np.full(n, np.nan),
-            "tail_visible": np.full(n, np.nan),
-            "view_angle_deg": np.full(n, np.nan),
-        },
-        index=gt_rows.index,
-    )
+    out = pd.DataFrame({c: np.full(n, np.nan) for c in AMBIGUITY_COLUMNS}, index=gt_rows.index)
     obj = gt_rows["obj_id"].to_numpy()
     for obj_id in np.unique(obj):
         sel = np.flatnonzero(obj == obj_id)
@@ -140,11 +140,13 @@ def instance_ambiguity(
 
 
 def ambiguity_splits(rows: pd.DataFrame) -> dict[str, dict[str, dict[str, float]]]:
-    """The paper's statistics of RE, TE, MSSD split by ends visible, view angle, visibility.
+    """The paper's statistics of its table's metrics split by ends visible, view angle,
+    visibility.
 
     Args:
-        rows: GT rows of the table population (visib ≥ min_visib) with ``re``, ``te``,
-            ``mssd``, ``tip_visible``, ``tail_visible``, ``view_angle_deg``, ``visib_fract``.
+        rows: GT rows of the table population (visib ≥ min_visib) with the columns of the
+            table's metrics (:func:`~bopsurg.metrics.registry.table_metrics`: ``re``, ``te``,
+            ``mssd``), ``tip_visible``, ``tail_visible``, ``view_angle_deg``, ``visib_fract``.
 
     Returns:
         ``{split: {group: {"n", "re_median", "te_median", "mssd_median", "mssd_mean"}}}``.
@@ -169,9 +171,9 @@ def ambiguity_splits(rows: pd.DataFrame) -> dict[str, dict[str, dict[str, float]
         out[split] = {}
         for label, mask in parts.items():
             g = r[mask.to_numpy()]
-            stats = {"n": len(g)}
-            for m in ("re", "te", "mssd"):
-                stats[f"{m}_median"] = describe(g[m].to_numpy())["median"]
+            stats: dict[str, float] = {"n": len(g)}
+            for metric in table_metrics():
+                stats[f"{metric.name}_median"] = describe(g[metric.name].to_numpy())["median"]
             stats["mssd_mean"] = describe(g["mssd"].to_numpy())["mean"]
             out[split][label] = stats
     return out

@@ -72,7 +72,8 @@ class DetectionSamples:
         col = {o: k for k, o in enumerate(objs)}
         targets = np.zeros((len(inputs.images), len(objs)), dtype=np.int64)
         g = np.flatnonzero(inputs.is_target)
-        np.add.at(targets, (inputs.gt_im_pos[g], [col[int(o)] for o in inputs.gt.obj_id[g]]), 1)
+        obj_col = np.array([col[int(o)] for o in inputs.gt.obj_id[g]], dtype=np.int64)
+        np.add.at(targets, (inputs.gt_im_pos[g], obj_col), 1)
         runs = [r for c in det.curves.values() for r in c.ranked]
         lengths = [len(img) for img, _ in runs]
         empty_i, empty_b = np.zeros(0, np.int64), np.zeros(0, bool)
@@ -201,7 +202,8 @@ def _first_reaching(tp_cum: F64, total: F64) -> I64:
     keys = (np.minimum(tp_cum, span - 1).astype(np.int64) + rows).ravel()
     query = (np.minimum(k, span - 1).astype(np.int64) + rows).ravel()
     first = np.searchsorted(keys, query, side="left").reshape(b, -1) - rows // span * n
-    return first.astype(np.int64)
+    out: I64 = first.astype(np.int64)
+    return out
 
 
 def replicate_scores(samples: DetectionSamples, weights: F64) -> dict[str, F64]:

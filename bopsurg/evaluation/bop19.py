@@ -18,14 +18,27 @@ of the reference toolkit (``visib_gt_min = -1``, ``n_top = -1``, targets from
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import pandas as pd
 from numpy.typing import NDArray
+from tqdm import tqdm
 
-from bopsurg.evaluation.matching import greedy_match
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.images import load_depth
+from bopsurg.bop.results import PoseEstimates
+from bopsurg.bop.targets import Target
+from bopsurg.errors import DatasetError
+from bopsurg.evaluation.matching import greedy_match, valid_gts_localization
+from bopsurg.evaluation.pair_errors import ModelCache, candidate_pairs, pair_errors
+from bopsurg.evaluation.tables import GtTable, estimates_frame, rank_within_groups
+from bopsurg.metrics.vsd import vsd
+from bopsurg.plugins import DepthRenderer
 
 F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
 
 #: Correctness thresholds exactly as the reference builds them (floats included).
 MSSD_THRESHOLDS: tuple[float, ...] = tuple(float(x) for x in np.arange(0.05, 0.51, 0.05))
@@ -126,4 +139,154 @@ def sphere_projections_overlap(t_est: F64, t_gt: F64, radius: F64) -> NDArray[np
         pg = t_gt[:, :2] / zg[:, None]
         dist = np.linalg.norm(pe - pg, axis=1)
         thresh = radius * (1.0 / ze + 1.0 / zg)
-    return nonzero & (dist < thresh)
+    result: NDArray[np.bool_] = nonzero & (dist < thresh)
+    return result
+
+
+@dataclass(frozen=True)
+class VsdInputs:
+    """What VSD needs besides the poses.
+
+    Attributes:
+        dataset: The dataset (depth images, cameras, models).
+        renderer: Renders model depth at a pose.
+        delta: Visibility tolerance δ, mm.
+        progress: Show a progress bar over images.
+    """
+
+    dataset: BopDataset
+    renderer: DepthRenderer
+    delta: float = VSD_DELTA_MM
+    progress: bool = False
+
+
+def _target_frame(targets: Sequence[Target]) -> pd.DataFrame:
+    """Targets as columns, one row per (scene, image, object); the last entry wins."""
+    return pd.DataFrame(
+        {
+            "scene_id": [t.scene_id for t in targets],
+            "im_id": [t.im_id for t in targets],
+            "obj_id": [t.obj_id for t in targets],
+            "inst_count": [t.inst_count for t in targets],
+        },
+        dtype=np.int64,
+    ).drop_duplicates(["scene_id", "im_id", "obj_id"], keep="last")
+
+
+def valid_gts(gt: GtTable, targets: pd.DataFrame) -> NDArray[np.bool_]:
+    """(G,) the valid GT instances: in target images, of target objects, the ``inst_count``
+    most visible per (scene, image, object)."""
+    gdf = gt.frame().merge(targets, on=["scene_id", "im_id", "obj_id"], how="left")
+    gdf = gdf.sort_values("g").reset_index(drop=True)
+    inst = gdf["inst_count"].fillna(0).to_numpy(dtype=np.int64)
+    grp = gdf.groupby(["scene_id", "im_id", "obj_id"], sort=False).ngroup().to_numpy()
+    return valid_gts_localization(grp, gt.visib_fract, inst)
+
+
+def kept_pairs(est: PoseEstimates, gt: GtTable, targets: pd.DataFrame) -> PairTable:
+    """Candidate pairs of the kept estimates: targets only, the ``inst_count`` best-scored per
+    (scene, image, object)."""
+    est_df = estimates_frame(est).merge(targets, on=["scene_id", "im_id", "obj_id"], how="inner")
+    est_df = est_df.sort_values("e").reset_index(drop=True)
+    rank, _ = rank_within_groups(
+        est_df[["scene_id", "im_id", "obj_id"]], est_df["score"].to_numpy()
+    )
+    est_df["rank"] = rank
+    est_df = est_df[est_df["rank"] < est_df["inst_count"]]
+    pairs_df = candidate_pairs(est_df.drop(columns="inst_count"), gt)
+    return PairTable(
+        est_rank=pairs_df["rank"].to_numpy(np.int64),
+        est_index=pairs_df["e"].to_numpy(np.int64),
+        gt_index=pairs_df["g"].to_numpy(np.int64),
+    )
+
+
+def recall_curves(
+    est: PoseEstimates,
+    gt: GtTable,
+    targets: Sequence[Target],
+    models: ModelCache,
+    *,
+    pair_mssd: pd.DataFrame,
+    vsd_inputs: VsdInputs | None = None,
+) -> dict[str, RecallCurve]:
+    """BOP19 recall curves (MSSD, MSPD, and VSD with ``vsd_inputs``) under the reference's rules.
+
+    Args:
+        est: The estimates.
+        gt: The GT table.
+        targets: The BOP19 targets.
+        models: Model points, symmetries and diameters.
+        pair_mssd: MSSD (mm) of candidate pairs already computed (columns ``e``, ``g``,
+            ``mssd``); every kept pair must be among them.
+        vsd_inputs: Depth renderer and dataset for VSD; None: no VSD curve.
+    """
+    tdf = _target_frame(targets)
+    valid = valid_gts(gt, tdf)
+    pairs = kept_pairs(est, gt, tdf)
+    e_idx, g_idx = pairs.est_index, pairs.gt_index
+    errs = pair_errors(est, gt, e_idx, g_idx, models, ("te", "mspd"))
+    known = pd.Series(
+        pair_mssd["mssd"].to_numpy(), index=pd.MultiIndex.from_frame(pair_mssd[["e", "g"]])
+    )
+    errs["mssd"] = known.reindex(pd.MultiIndex.from_arrays([e_idx, g_idx])).to_numpy()
+    diam = models.diameters(gt.obj_id[g_idx])
+    curves = {
+        "mssd": recall_curve(
+            pairs, normalise_mssd(errs["mssd"], errs["te"], diam), valid, MSSD_THRESHOLDS, "mssd"
+        ),
+        "mspd": recall_curve(
+            pairs, normalise_mspd(errs["mspd"], gt.im_width[g_idx]), valid, MSPD_THRESHOLDS, "mspd"
+        ),
+    }
+    if vsd_inputs is not None:
+        errors = vsd_errors(est, gt, e_idx, g_idx, diam, vsd_inputs)
+        curve = recall_curve(pairs, errors, valid, VSD_THRESHOLDS, "vsd")
+        curve.taus = list(VSD_TAUS)
+        curve.extra["delta_mm"] = vsd_inputs.delta
+        curves["vsd"] = curve
+    return curves
+
+
+def vsd_errors(
+    est: PoseEstimates, gt: GtTable, e_idx: I64, g_idx: I64, diameter: F64, inputs: VsdInputs
+) -> F64:
+    """VSD errors (τ × P) of the pairs, 1 where the sphere projections do not overlap.
+
+    Pairs are rendered image by image (the scene depth is loaded once per image, each GT pose
+    rendered once).
+
+    Raises:
+        DatasetError: An image without ``depth_scale``.
+    """
+    taus = np.asarray(VSD_TAUS)
+    out = np.ones((taus.size, e_idx.shape[0]))
+    overlap = sphere_projections_overlap(est.t[e_idx], gt.t[g_idx], 0.5 * diameter)
+    todo = np.flatnonzero(overlap)
+    images = pd.DataFrame({"s": gt.scene_id[g_idx[todo]], "i": gt.im_id[g_idx[todo]], "p": todo})
+    groups = images.groupby(["s", "i"], sort=True)
+    dataset, renderer = inputs.dataset, inputs.renderer
+    for (scene_id, im_id), grp in tqdm(
+        groups, total=groups.ngroups, desc="VSD", unit="img", disable=not inputs.progress
+    ):
+        scene = dataset.scene(int(scene_id))
+        cam = scene.camera[int(im_id)]
+        if cam.depth_scale is None:
+            raise DatasetError(
+                "depth_scale is missing (needed for VSD)",
+                path=scene.scene_dir / "scene_camera.json",
+                field=f"{im_id}/depth_scale",
+            )
+        depth = load_depth(scene.depth_path(int(im_id))) * cam.depth_scale
+        h, w = depth.shape
+        gt_cache: dict[int, F64] = {}
+        for p in grp["p"].to_numpy():
+            g, e = int(g_idx[p]), int(e_idx[p])
+            model = dataset.model(int(gt.obj_id[g]))
+            if g not in gt_cache:
+                gt_cache[g] = renderer.render_depth(model, gt.R[g], gt.t[g], cam.K, w, h)
+            d_est = renderer.render_depth(model, est.R[e], est.t[e], cam.K, w, h)
+            out[:, p] = vsd(
+                depth, d_est, gt_cache[g], cam.K, inputs.delta, taus, diameter=float(diameter[p])
+            )
+    return out

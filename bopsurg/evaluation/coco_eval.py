@@ -99,7 +99,7 @@ def load_coco_results(path: str | Path) -> list[dict[str, Any]]:
     return out
 
 
-def _coco():  # -> (COCO, COCOeval, mask module)
+def _coco() -> tuple[Any, Any, Any]:  # (COCO, COCOeval, mask module); pycocotools is untyped
     try:
         from pycocotools import mask as mask_utils
         from pycocotools.coco import COCO

@@ -1,7 +1,8 @@
 """The paper's error table and the absolute-threshold scores useful for small instruments.
 
 The paper (Table I) reports, over GT instances with ``visib_fract ≥ 0.3``, the mean, standard
-deviation, median, minimum and maximum of RE (deg), TE (mm) and MSSD (mm). bopsurg adds the
+deviation, median, minimum and maximum of RE (deg), TE (mm) and MSSD (mm): the registered
+metrics with ``in_table`` (:mod:`bopsurg.metrics.registry`). bopsurg adds the
 number of GT instances without any estimate (they cannot enter the statistics, so they are
 counted apart), recalls at absolute thresholds (MSSD < 1/2/5 mm, RE < 5/10°) where a missed
 instance counts as a failure, and the ADD / ADD-S AUC.
@@ -12,21 +13,26 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-#: Columns of the paper's table and their units.
-TABLE_METRICS: dict[str, str] = {"re": "deg", "te": "mm", "mssd": "mm"}
+from bopsurg.metrics.registry import METRICS, table_metrics
 
-#: Absolute-threshold recalls: (column, threshold, label).
-ABS_THRESHOLDS: tuple[tuple[str, float, str], ...] = (
-    ("mssd", 1.0, "mssd<1mm"),
-    ("mssd", 2.0, "mssd<2mm"),
-    ("mssd", 5.0, "mssd<5mm"),
-    ("re", 5.0, "re<5deg"),
-    ("re", 10.0, "re<10deg"),
+#: Absolute-threshold recalls: (metric, threshold in the metric's unit), reported as
+#: ``"{metric}<{threshold}{unit}"``, e.g. ``mssd<1mm``.
+ABS_THRESHOLDS: tuple[tuple[str, float], ...] = (
+    ("mssd", 1.0),
+    ("mssd", 2.0),
+    ("mssd", 5.0),
+    ("re", 5.0),
+    ("re", 10.0),
 )
 
 #: ADD(-S) AUC: accuracy integrated over thresholds 0 … AUC_MAX_FRACTION × diameter.
 AUC_MAX_FRACTION = 0.1
 AUC_STEPS = 100
+
+
+def recall_label(metric: str, threshold: float) -> str:
+    """The key of an absolute-threshold recall, e.g. ``mssd<1mm``."""
+    return f"{metric}<{threshold:g}{METRICS[metric].unit}"
 
 
 def describe(values: np.ndarray) -> dict[str, float]:
@@ -69,35 +75,39 @@ def paper_summary(gt_rows: pd.DataFrame, *, min_visib: float = 0.3) -> dict[str,
 
     Args:
         gt_rows: One row per GT instance with columns ``visib_fract``, ``diameter`` and the
-            matched estimate's ``re``, ``te``, ``mssd``, ``add``, ``adi`` (NaN when the
-            instance has no estimate).
+            matched estimate's values of the registered metrics
+            (:data:`~bopsurg.metrics.registry.METRICS`; NaN when the instance has no estimate).
         min_visib: Visibility threshold (the paper: 0.3).
 
     Returns:
         ``{"min_visib", "gt_instances", "with_estimate", "missed", "table": {metric: stats},
-        "recall": {label: value}, "add_auc", "adi_auc"}``.
+        "recall": {label: value}, "{metric}_auc" for each metric with ``auc`` (``add_auc``,
+        ``adi_auc``)}``.
     """
     sel = gt_rows[gt_rows["visib_fract"] >= min_visib]
     has_est = sel["re"].notna()
     table = {
-        m: {"unit": u, **describe(sel.loc[has_est, m].to_numpy())} for m, u in TABLE_METRICS.items()
+        m.name: {"unit": m.unit, **describe(sel.loc[has_est, m.name].to_numpy())}
+        for m in table_metrics()
     }
     n = len(sel)
     recall: dict[str, float] = {}
-    for col, th, label in ABS_THRESHOLDS:
-        v = sel[col].to_numpy(dtype=np.float64)
-        recall[label] = float(np.count_nonzero(v < th) / n) if n else float("nan")
+    for name, th in ABS_THRESHOLDS:
+        v = sel[name].to_numpy(dtype=np.float64)
+        recall[recall_label(name, th)] = float(np.count_nonzero(v < th) / n) if n else float("nan")
     max_th = AUC_MAX_FRACTION * sel["diameter"].to_numpy(dtype=np.float64)
-    return {
+    out: dict[str, object] = {
         "min_visib": min_visib,
         "gt_instances": int(n),
         "with_estimate": int(has_est.sum()),
         "missed": int(n - has_est.sum()),
         "table": table,
         "recall": recall,
-        "add_auc": auc(sel["add"].to_numpy(dtype=np.float64), max_th),
-        "adi_auc": auc(sel["adi"].to_numpy(dtype=np.float64), max_th),
     }
+    for m in METRICS.values():
+        if m.auc:
+            out[f"{m.name}_auc"] = auc(sel[m.name].to_numpy(dtype=np.float64), max_th)
+    return out
 
 
 def format_table(summary: dict[str, object], scores: dict[str, float] | None = None) -> str:
@@ -111,7 +121,7 @@ def format_table(summary: dict[str, object], scores: dict[str, float] | None = N
         f"{'':<12}{'N':>7}{'mean':>10}{'std':>10}{'median':>10}{'min':>10}{'max':>10}",
     ]
     for metric, stats in table.items():
-        name = f"{metric.upper()} [{stats['unit']}]"
+        name = METRICS[metric].heading()
         lines.append(
             f"{name:<12}{stats['n']:>7d}{stats['mean']:>10.2f}{stats['std']:>10.2f}"
             f"{stats['median']:>10.2f}{stats['min']:>10.2f}{stats['max']:>10.2f}"
@@ -119,21 +129,20 @@ def format_table(summary: dict[str, object], scores: dict[str, float] | None = N
     recall = summary["recall"]
     assert isinstance(recall, dict)
     lines += ["", "Recall: " + ", ".join(f"{k} {v:.3f}" for k, v in recall.items())]
-    lines.append(
-        f"AUC (0-{AUC_MAX_FRACTION:g} x diameter): ADD {summary['add_auc']:.3f}, "
-        f"ADD-S {summary['adi_auc']:.3f}"
-    )
+    aucs = [f"{m.label} {summary[m.name + '_auc']:.3f}" for m in METRICS.values() if m.auc]
+    lines.append(f"AUC (0-{AUC_MAX_FRACTION:g} x diameter): " + ", ".join(aucs))
     splits = summary.get("splits")
     if isinstance(splits, dict) and splits:
-        lines += ["", f"{'split':<28}{'N':>6}{'RE med':>9}{'TE med':>9}{'MSSD med':>10}"]
+        # one median column per table metric, at least 9 wide and 2 more than its title
+        cols = [(m.name, f"{m.label} med", max(9, len(m.label) + 6)) for m in table_metrics()]
+        head = "".join(f"{title:>{w}}" for _, title, w in cols)
+        lines += ["", f"{'split':<28}{'N':>6}{head}"]
         for split, groups in splits.items():
             for label, st in groups.items():
                 if st["n"] == 0:
                     continue
-                lines.append(
-                    f"{split + ': ' + label:<28}{st['n']:>6d}{st['re_median']:>9.2f}"
-                    f"{st['te_median']:>9.2f}{st['mssd_median']:>10.2f}"
-                )
+                cells = "".join(f"{st[name + '_median']:>{w}.2f}" for name, _, w in cols)
+                lines.append(f"{split + ': ' + label:<28}{st['n']:>6d}{cells}")
     if scores:
         lines += ["", "BOP19 (reference toolkit semantics):"]
         for key, value in scores.items():

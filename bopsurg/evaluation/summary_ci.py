@@ -25,14 +25,21 @@ from bopsurg.evaluation.bootstrap import (
     percentile_interval,
     resample_weights,
 )
-from bopsurg.evaluation.summary import ABS_THRESHOLDS, AUC_MAX_FRACTION, AUC_STEPS, TABLE_METRICS
+from bopsurg.evaluation.summary import (
+    ABS_THRESHOLDS,
+    AUC_MAX_FRACTION,
+    AUC_STEPS,
+    recall_label,
+)
+from bopsurg.metrics.registry import METRICS, table_metrics
 
 F64 = NDArray[np.float64]
 
 
 def _units(rows: pd.DataFrame, unit: str) -> NDArray[np.int64]:
     keys = ["scene_id"] if unit == "scene" else ["scene_id", "im_id"]
-    return rows.groupby(keys, sort=True).ngroup().to_numpy(np.int64)
+    units: NDArray[np.int64] = rows.groupby(keys, sort=True).ngroup().to_numpy(np.int64)
+    return units
 
 
 def weighted_median(values: F64, weights: F64) -> F64:
@@ -57,14 +64,18 @@ def weighted_median(values: F64, weights: F64) -> F64:
 
 
 #: Columns of the GT rows the table's replicates need (what ``bopsurg compare`` keeps).
-SAMPLE_COLUMNS = ("scene_id", "im_id", "gt_id", "visib_fract", "diameter",
-                  "re", "te", "mssd", "add", "adi")  # fmt: skip
+#: Columns of a GT row that the intervals read: its image, and every registered metric.
+ID_COLUMNS = ("scene_id", "im_id", "gt_id", "visib_fract", "diameter")
+
+
+def _sample_columns() -> tuple[str, ...]:
+    return (*ID_COLUMNS, *METRICS)  # read when called: a metric added to the registry counts
 
 
 def table_rows(gt_rows: pd.DataFrame, min_visib: float) -> pd.DataFrame:
     """The GT instances of the table (``visib_fract ≥ min_visib``), columns it needs."""
     sel = gt_rows[gt_rows["visib_fract"] >= min_visib]
-    return sel[[c for c in SAMPLE_COLUMNS if c in sel]].reset_index(drop=True)
+    return sel[[c for c in _sample_columns() if c in sel]].reset_index(drop=True)
 
 
 def summary_replicates(rows: pd.DataFrame, weights: F64) -> dict[str, F64]:
@@ -73,7 +84,7 @@ def summary_replicates(rows: pd.DataFrame, weights: F64) -> dict[str, F64]:
     total = weights.sum(axis=1)
     out: dict[str, F64] = {}
     with np.errstate(invalid="ignore", divide="ignore"):
-        for m in TABLE_METRICS:
+        for m in (t.name for t in table_metrics()):
             v = rows[m].to_numpy(np.float64)
             ok = np.isfinite(v)
             wv, vv = weights[:, ok], v[ok]
@@ -82,12 +93,12 @@ def summary_replicates(rows: pd.DataFrame, weights: F64) -> dict[str, F64]:
             out[f"{m}_mean"] = mean
             out[f"{m}_std"] = np.sqrt(np.maximum(wv @ (vv * vv) / n - mean * mean, 0.0))
             out[f"{m}_median"] = weighted_median(vv, wv)
-        for col, th, label in ABS_THRESHOLDS:
+        for col, th in ABS_THRESHOLDS:
             hit = rows[col].to_numpy(np.float64) < th  # NaN (missed) is no hit
-            out[f"recall_{label}"] = weights @ hit / total
+            out[f"recall_{recall_label(col, th)}"] = weights @ hit / total
         s = np.arange(1, AUC_STEPS + 1) / AUC_STEPS
         max_th = AUC_MAX_FRACTION * rows["diameter"].to_numpy(np.float64)
-        for col in ("add", "adi"):
+        for col in (m.name for m in METRICS.values() if m.auc):
             if col in rows:
                 e = rows[col].to_numpy(np.float64)
                 ratio = np.where(np.isnan(e), np.inf, e) / max_th
@@ -124,13 +135,14 @@ def summary_intervals(
     rows = table_rows(gt_rows, min_visib)
     reps = summary_replicates(rows, row_weights(rows, replicates, seed, unit))
     out: dict[str, Any] = {"table": {}, "recall": {}}
-    for m in TABLE_METRICS:
+    for m in (t.name for t in table_metrics()):
         out["table"][m] = {
             k: percentile_interval(reps[f"{m}_{k}"]) for k in ("mean", "std", "median")
         }
-    for _, _, label in ABS_THRESHOLDS:
+    for col, th in ABS_THRESHOLDS:
+        label = recall_label(col, th)
         out["recall"][label] = percentile_interval(reps[f"recall_{label}"])
-    for col in ("add", "adi"):
+    for col in (m.name for m in METRICS.values() if m.auc):
         if f"{col}_auc" in reps:
             out[f"{col}_auc"] = percentile_interval(reps[f"{col}_auc"])
     return out

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -70,7 +71,9 @@ def load_gt_table(
         DatasetError: A scene lacks scene_gt_info.json while ``need_gt_info`` is set, or a GT
             image has no camera entry.
     """
-    cols: dict[str, list] = {k: [] for k in ("scene", "im", "gt", "obj", "R", "t", "K", "vf", "w")}
+    cols: dict[str, list[Any]] = {
+        k: [] for k in ("scene", "im", "gt", "obj", "R", "t", "K", "vf", "w")
+    }
     images: set[tuple[int, int]] = set()
     ids = dataset.scene_ids if scene_ids is None else sorted(set(scene_ids))
     for scene_id in ids:

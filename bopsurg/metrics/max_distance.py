@@ -223,7 +223,8 @@ class _Kernel3D(_Kernel):
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
         d = np.einsum("kij,jkm->kim", self._diff_mats(i, s), self.c.X_ch[:, jj])
-        return np.einsum("kim,kim->km", d, d).max(axis=1)
+        result: F64 = np.einsum("kim,kim->km", d, d).max(axis=1)
+        return result
 
     def final(self, i: I64, s: I64, j: I64) -> F64:
         # The reference's formula: transform both, subtract, norm (sqrt of the summed squares).
@@ -234,7 +235,8 @@ class _Kernel3D(_Kernel):
         p_est = np.matmul(self.R_e[i], x)[:, :, 0] + self.te[i]
         p_gt = np.matmul(R_gs, x)[:, :, 0] + t_gs
         d = p_est - p_gt
-        return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+        result: F64 = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+        return result
 
 
 class _KernelProj(_Kernel):
@@ -295,7 +297,8 @@ class _KernelProj(_Kernel):
         R_t = np.empty((i.size, 3, 4))
         R_t[:, :, :3] = np.matmul(R_g, self.c.R_sym[s])
         R_t[:, :, 3] = np.matmul(R_g, self.c.t_sym[s][:, :, None])[:, :, 0] + self.tg[i]
-        return np.matmul(self.K[i], R_t)
+        result: F64 = np.matmul(self.K[i], R_t)
+        return result
 
     def pairs_lb(self, i: I64, s: I64, level: int) -> F64:
         m = self.c.levels[level]
@@ -345,10 +348,12 @@ class _KernelProj(_Kernel):
             ue = np.einsum("kij,jkm->kim", self.P_e[i], X)
             ug = np.einsum("kij,jkm->kim", self._proj_mats(i, s), X)
             d = ue[:, :2] / ue[:, 2:3] - ug[:, :2] / ug[:, 2:3]
-            return d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+            result: F64 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+            return result
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
-        return self._dist_sq(i, s, jj).max(axis=1)
+        result: F64 = self._dist_sq(i, s, jj).max(axis=1)
+        return result
 
     def final(self, i: I64, s: I64, j: I64) -> F64:
         with np.errstate(invalid="ignore"):

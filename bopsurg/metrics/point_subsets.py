@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import ConvexHull, QhullError
 
 from bopsurg.geometry import as_points
 
@@ -37,6 +36,9 @@ def hull_vertex_indices(pts: F64) -> I64:
     pts = as_points(pts)
     if pts.shape[0] < 5:
         return np.arange(pts.shape[0], dtype=np.int64)
+    # scipy on first use: importing the metrics (the registry, 'eval --help') stays light.
+    from scipy.spatial import ConvexHull, QhullError
+
     try:
         hull = ConvexHull(pts)
     except (QhullError, ValueError):

@@ -28,7 +28,6 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from bopsurg.errors import InputError
 from bopsurg.geometry import as_points, as_rotations, as_translations, batch_size
@@ -84,7 +83,8 @@ def re(R_est: ArrayLike, R_gt: ArrayLike) -> F64:
     prod = np.matmul(np.broadcast_to(R_e, (n, 3, 3)), np.broadcast_to(inv, (n, 3, 3)))
     error_cos = 0.5 * (np.trace(prod, axis1=1, axis2=2) - 1.0)
     error_cos = np.minimum(1.0, np.maximum(-1.0, error_cos))
-    return 180.0 * np.arccos(error_cos) / np.pi
+    result: F64 = 180.0 * np.arccos(error_cos) / np.pi
+    return result
 
 
 def te(t_est: ArrayLike, t_gt: ArrayLike) -> F64:
@@ -322,6 +322,9 @@ def adi(
     slack = 1e-12 * (rho + np.linalg.norm(pairs.t_est, axis=1) + np.linalg.norm(pairs.t_gt, axis=1))
     # Sliding-midpoint splits and larger leaves: 2x faster queries on thin curved models
     # (needles), the same on compact ones; the nearest neighbour is exact either way.
+    # scipy on first use: importing the metrics (the registry, 'eval --help') stays light.
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(p, leafsize=64, balanced_tree=False, compact_nodes=False)
     p_t = np.ascontiguousarray(p.T)
     out = np.empty(pairs.n)

@@ -45,7 +45,8 @@ def _sym_list(syms: Any) -> SymList:
 def transform_pts_Rt(pts: F64, R: F64, t: F64) -> F64:  # noqa: N802 - the reference name
     """``(R @ pts.T + t).T``: (V, 3) mm, as ``bop_toolkit_lib.misc.transform_pts_Rt``."""
     pts_t = R.dot(pts.T) + t.reshape((3, 1))
-    return pts_t.T
+    result: F64 = pts_t.T
+    return result
 
 
 def project_pts(pts: F64, K: F64, R: F64, t: F64) -> F64:
@@ -55,7 +56,8 @@ def project_pts(pts: F64, K: F64, R: F64, t: F64) -> F64:
     pts_im = P.dot(pts_h.T)
     with np.errstate(divide="ignore", invalid="ignore"):
         pts_im /= pts_im[2, :]
-    return pts_im[:2, :].T
+    result: F64 = pts_im[:2, :].T
+    return result
 
 
 def symmetry_transforms_ref(model_info: Mapping[str, Any], max_sym_disc_step: float) -> SymList:
@@ -196,7 +198,8 @@ def _visib_ref(d_test: F64, d_model: F64, delta: float) -> NDArray[np.bool_]:
     model_mask = d_model > 0
     d_diff = d_model.astype(np.float32) - d_test.astype(np.float32)
     visib_mask = np.logical_and(np.logical_or(d_diff <= delta, d_test == 0), model_mask)
-    return visib_mask
+    result: NDArray[np.bool_] = visib_mask
+    return result
 
 
 def vsd_ref(

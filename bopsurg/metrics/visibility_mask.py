@@ -68,7 +68,8 @@ def estimate_visib_mask(
     d_diff = d_model.astype(np.float32) - d_test.astype(np.float32)
     close = d_diff <= np.float32(delta)
     if mode == "bop19":
-        return np.logical_and(np.logical_or(close, d_test == 0), d_model > 0)
+        result: NDArray[np.bool_] = np.logical_and(np.logical_or(close, d_test == 0), d_model > 0)
+        return result
     if mode == "bop18":
         return np.logical_and(close, np.logical_and(d_test > 0, d_model > 0))
     raise InputError(
@@ -111,4 +112,5 @@ def estimate_visib_mask_est(
     visib = estimate_visib_mask(dist_test, d_est, delta, mode)
     if vis_gt.shape != visib.shape:
         raise ShapeError(f"shape {vis_gt.shape} differs from {visib.shape}", field="visib_gt")
-    return np.logical_or(visib, np.logical_and(vis_gt, d_est > 0))
+    result: NDArray[np.bool_] = np.logical_or(visib, np.logical_and(vis_gt, d_est > 0))
+    return result

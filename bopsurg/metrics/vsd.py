@@ -53,6 +53,20 @@ def _positive(x: float, name: str) -> float:
     return v
 
 
+def _taus(taus: Sequence[float] | ArrayLike, cost: str) -> F64:
+    """The tolerances τ as a finite (T,) array, checked against the pixel cost."""
+    tau: F64 = np.atleast_1d(np.asarray(taus, dtype=np.float64))
+    if tau.ndim != 1 or not np.all(np.isfinite(tau)):
+        raise InputError("expected a finite 1-D sequence", field="taus")
+    if cost not in ("step", "tlinear"):
+        raise InputError(
+            f"unknown pixel cost {cost!r} (expected 'step' or 'tlinear')", field="cost"
+        )
+    if cost == "tlinear" and np.any(tau <= 0):
+        raise InputError("tlinear needs every tau > 0", field="taus")
+    return tau
+
+
 def vsd(
     depth_test: ArrayLike,
     depth_est: ArrayLike,
@@ -102,15 +116,7 @@ def vsd(
         raise ShapeError(f"expected a finite (3, 3) matrix, got shape {K_m.shape}", field="K")
     if not np.isfinite(delta):
         raise InputError(f"must be finite, got {delta!r}", field="delta")
-    tau = np.atleast_1d(np.asarray(taus, dtype=np.float64))
-    if tau.ndim != 1 or not np.all(np.isfinite(tau)):
-        raise InputError("expected a finite 1-D sequence", field="taus")
-    if cost not in ("step", "tlinear"):
-        raise InputError(
-            f"unknown pixel cost {cost!r} (expected 'step' or 'tlinear')", field="cost"
-        )
-    if cost == "tlinear" and np.any(tau <= 0):
-        raise InputError("tlinear needs every tau > 0", field="taus")
+    tau = _taus(taus, cost)
     diam = None if diameter is None else _positive(diameter, "diameter")
 
     dist_test = depth_to_distance(test, K_m)

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.atomic import atomic_path
 from bopsurg.bop.dataset import BopDataset
@@ -144,8 +144,8 @@ def write_figures(
     out: Path,
     errors: pd.DataFrame,
     summary: Mapping[str, Any],
-    gt_distance_mm: Sequence[float],
-    gt_visib: Sequence[float],
+    gt_distance_mm: Sequence[float] | NDArray[np.float64],
+    gt_visib: Sequence[float] | NDArray[np.float64],
     det: DetectionEvaluation | None = None,
 ) -> list[Path]:
     """Every figure of an evaluation into ``out/figures/``; returns the written files."""

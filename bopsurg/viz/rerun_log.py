@@ -12,14 +12,15 @@ that has GT or estimates, in ``(scene_id, im_id)`` order):
   ``mask_visib`` masks (or the same projection at the GT poses where a mask is missing).
 - ``world/gt/obj_{obj_id:06d}`` (blue) and ``world/est/obj_{obj_id:06d}`` (green): the model
   meshes (mm) at the GT and estimated poses.
-- ``metrics/{re,te,mssd,mspd}`` and ``metrics/visib_fract``: per-frame errors (deg, mm, mm,
+- ``metrics/{re,te,mssd,mspd}`` (the registered metrics with ``in_rerun``,
+  :mod:`bopsurg.metrics.registry`) and ``metrics/visib_fract``: per-frame errors (deg, mm, mm,
   px, fraction); ``metrics/worst_rank``: 1..N on the N frames with the largest MSSD.
 - ``frame_info/{scene_id,im_id}``: the ids of each frame.
 - ``world/camera/boxes``: the 2D boxes the estimates came from (``--detections``), labelled
   with object id and score.
-- ``histograms/{re,te,mssd}`` (:class:`rerun.BarChart`, interactive),
-  ``histograms/{re,te,mssd}_plot`` (the paper's Fig. 4: the histogram drawn as an image with
-  the median marked by a red line) and ``histograms/medians`` (text).
+- ``histograms/{re,te,mssd}`` (the metrics of the paper's table; :class:`rerun.BarChart`,
+  interactive), ``histograms/{re,te,mssd}_plot`` (the paper's Fig. 4: the histogram drawn as
+  an image with the median marked by a red line) and ``histograms/medians`` (text).
 - ``report/summary`` (the paper's table, markdown) and ``report/worst`` (the worst frames).
 
 The per-frame value of a metric is the largest over the frame's matched estimates (the one an
@@ -44,11 +45,12 @@ import numpy as np
 import pandas as pd
 
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.detections import Detections
 from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.bop.results import PoseEstimates
 from bopsurg.errors import BopsurgError
-from bopsurg.estimation import Detections
 from bopsurg.evaluation.summary import format_table
+from bopsurg.metrics.registry import rerun_metrics, table_metrics
 from bopsurg.silhouette import is_closed, project_silhouette
 
 if TYPE_CHECKING:
@@ -61,8 +63,6 @@ log = logging.getLogger(__name__)
 #: two silhouettes, mesh poses) while scalars for 10,000 frames cost ~0.3 s, so 200 images
 #: keep the recording cheaper than the evaluation it shows.
 DEFAULT_IMAGE_FRAMES = 100
-#: Per-frame metrics logged under ``metrics/`` (RE deg, TE mm, MSSD mm, MSPD px).
-FRAME_METRICS = ("re", "te", "mssd", "mspd")
 #: Silhouette colours (RGB): GT blue, estimate green, as in the paper's Fig. 3.
 GT_COLOR = (40, 90, 255)
 EST_COLOR = (0, 220, 0)
@@ -89,8 +89,9 @@ def frame_table(errors: pd.DataFrame, gt_rows: pd.DataFrame) -> pd.DataFrame:
 
     Returns:
         Columns ``frame`` (0..n-1), ``scene_id``, ``im_id``, ``n_gt``, ``n_est`` and per metric
-        of :data:`FRAME_METRICS` plus ``visib_fract`` the largest value over the frame's
-        matched estimates (NaN when none is matched): RE deg, TE/MSSD mm, MSPD px.
+        of :func:`~bopsurg.metrics.registry.rerun_metrics` plus ``visib_fract`` the largest
+        value over the frame's matched estimates (NaN when none is matched): RE deg, TE/MSSD
+        mm, MSPD px.
     """
     key = ["scene_id", "im_id"]
     ids = pd.concat([errors[key], gt_rows[key]]).drop_duplicates()
@@ -99,7 +100,8 @@ def frame_table(errors: pd.DataFrame, gt_rows: pd.DataFrame) -> pd.DataFrame:
     frames = frames.merge(gt_rows.groupby(key).size().rename("n_gt"), on=key, how="left")
     frames = frames.merge(errors.groupby(key).size().rename("n_est"), on=key, how="left")
     matched = errors[errors["gt_id"] >= 0]
-    cols = [c for c in (*FRAME_METRICS, "visib_fract") if c in matched]
+    names = [m.name for m in rerun_metrics()]
+    cols = [c for c in (*names, "visib_fract") if c in matched]
     frames = frames.merge(matched.groupby(key)[cols].max(), on=key, how="left")
     frames[["n_gt", "n_est"]] = frames[["n_gt", "n_est"]].fillna(0).astype(np.int64)
     return frames
@@ -136,6 +138,7 @@ def select_image_frames(mssd: np.ndarray, max_frames: int | None = None) -> np.n
 
 
 def _blueprint(rrb: Any) -> Any:
+    hists = [m.name for m in table_metrics()]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
@@ -149,11 +152,11 @@ def _blueprint(rrb: Any) -> Any:
                         rrb.Spatial2DView(
                             name=f"{n.upper()} histogram", origin=f"histograms/{n}_plot"
                         )
-                        for n in ("re", "te", "mssd")
+                        for n in hists
                     ),
                     *(
                         rrb.BarChartView(name=f"{n.upper()} bars", origin=f"histograms/{n}")
-                        for n in ("re", "te", "mssd")
+                        for n in hists
                     ),
                 ),
                 rrb.Tabs(
@@ -283,12 +286,13 @@ def _log_static(rr: Any, rec: Any, frames: pd.DataFrame, ev: Evaluation, worst: 
             rr.AnnotationContext([(1, name.split("_")[0], color)]),
             static=True,
         )
-    units = {"re": "deg", "te": "mm", "mssd": "mm"}
     # the instances of the paper's table (visib_fract >= min_visib), so the medians agree
-    min_visib = float(ev.summary.get("min_visib", 0.0))
+    min_visib = ev.summary.get("min_visib", 0.0)
+    assert isinstance(min_visib, int | float)
     matched = ev.errors[(ev.errors["gt_id"] >= 0) & (ev.errors["visib_fract"] >= min_visib)]
     lines = [f"# Medians (matched estimates, visib_fract >= {min_visib:g}, as the table)", ""]
-    for name, unit in units.items():
+    for m in table_metrics():
+        name, heading = m.name, m.heading()
         values = matched[name].to_numpy(float) if name in matched else np.array([])
         values = values[np.isfinite(values)]
         if len(values) == 0:
@@ -307,11 +311,11 @@ def _log_static(rr: Any, rec: Any, frames: pd.DataFrame, ev: Evaluation, worst: 
         )
         rec.log(
             f"histograms/{name}_plot",
-            rr.Image(histogram_figure(counts, edges, median, f"{name.upper()} [{unit}]")),
+            rr.Image(histogram_figure(counts, edges, median, heading)),
             static=True,
         )
         lines.append(
-            f"- {name.upper()} [{unit}]: median {median:.2f} (bin "
+            f"- {heading}: median {median:.2f} (bin "
             f"{int(np.searchsorted(edges, median, side='right')) - 1} of {HIST_BINS}, "
             f"{edges[0]:.2f}..{edges[-1]:.2f})"
         )
@@ -361,7 +365,7 @@ def _send(rr: Any, rec: Any, entity: str, frame: np.ndarray, values: np.ndarray)
 
 def _log_scalars(rr: Any, rec: Any, frames: pd.DataFrame, worst: int) -> None:
     frame = frames["frame"].to_numpy(np.int64)
-    for name in (*FRAME_METRICS, "visib_fract"):
+    for name in (*(m.name for m in rerun_metrics()), "visib_fract"):
         if name in frames:
             _send(rr, rec, f"metrics/{name}", frame, frames[name].to_numpy(float))
     for name in ("scene_id", "im_id"):
@@ -381,6 +385,126 @@ def _log_scalars(rr: Any, rec: Any, frames: pd.DataFrame, worst: int) -> None:
         )
 
 
+class _Meshes:
+    """Object models loaded on first use; each mesh is logged once (static, model frame, mm)
+    under ``world/gt`` and ``world/est``, and frames then only move its instances."""
+
+    def __init__(self, rr: Any, rec: Any, dataset: BopDataset) -> None:
+        self.rr, self.rec, self.dataset = rr, rec, dataset
+        self.models: dict[int, Any] = {}
+        self.closed: dict[int, bool] = {}
+
+    def __call__(self, obj_id: int) -> Any:
+        if obj_id not in self.models:
+            mdl = self.models[obj_id] = self.dataset.model(obj_id)
+            self.closed[obj_id] = is_closed(mdl.faces)
+            for kind, color in (("gt", GT_COLOR), ("est", EST_COLOR)):
+                self.rec.log(
+                    f"world/{kind}/obj_{obj_id:06d}",
+                    self.rr.Mesh3D(
+                        vertex_positions=mdl.pts,
+                        triangle_indices=mdl.faces,
+                        albedo_factor=[*color, 255],
+                    ),
+                    static=True,
+                )
+        return self.models[obj_id]
+
+    def silhouette(
+        self, obj_id: int, K: np.ndarray, R: np.ndarray, t: np.ndarray, shape: tuple[int, int]
+    ) -> np.ndarray:
+        """(H, W) bool: the model's projected triangles at pose (R, t mm) under K."""
+        mdl = self(obj_id)
+        return project_silhouette(mdl.pts, mdl.faces, K, R, t, shape, closed=self.closed[obj_id])
+
+
+Poses = dict[int, list[tuple[np.ndarray, np.ndarray]]]
+
+
+def _log_camera(rr: Any, rec: Any, dataset: BopDataset, s: int, im: int) -> tuple[int, int]:
+    """The pinhole and the JPEG-encoded image of one frame; returns the image's (h, w) px."""
+    scene = dataset.scene(s)
+    try:
+        rgb = load_rgb(scene.rgb_path(im))
+    except (OSError, BopsurgError):
+        rgb = None
+    if rgb is not None:
+        h, w = rgb.shape[:2]
+    else:
+        w, h = dataset.image_size(s)
+    rec.log(
+        "world/camera",
+        rr.Pinhole(
+            image_from_camera=scene.camera[im].K,
+            resolution=[w, h],
+            camera_xyz=rr.ViewCoordinates.RDF,
+        ),
+    )
+    if rgb is not None:
+        ok, jpg = cv2.imencode(
+            ".jpg",
+            cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+            [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY],
+        )
+        if ok:
+            rec.log(
+                "world/camera/rgb",
+                rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"),
+            )
+    return h, w
+
+
+def _gt_silhouette(
+    dataset: BopDataset, meshes: _Meshes, s: int, im: int, shape: tuple[int, int], poses: Poses
+) -> np.ndarray:
+    """Union of the frame's ``mask_visib`` masks (the projected model where one is missing);
+    appends each GT pose in front of the camera to ``poses``."""
+    scene = dataset.scene(s)
+    K = scene.camera[im].K
+    mask = np.zeros(shape, np.uint8)
+    for gt_id, g in enumerate(scene.gt.get(im, [])):
+        if g.t[2] <= 0:
+            continue
+        poses.setdefault(g.obj_id, []).append((g.R, g.t))
+        mpath = scene.mask_visib_path(im, gt_id)
+        if mpath.is_file():
+            m = load_mask(mpath)
+            if m.shape == mask.shape:
+                mask[m] = 1
+                continue
+        mask |= meshes.silhouette(g.obj_id, K, g.R, g.t, shape)
+    return mask
+
+
+def _log_boxes(rr: Any, rec: Any, det: Detections) -> None:
+    labels = [f"obj {o} {sc:.2f}" for o, sc in zip(det.obj_id, det.score, strict=True)]
+    rec.log(
+        "world/camera/boxes",
+        rr.Boxes2D(
+            array=det.bbox,
+            array_format=rr.Box2DFormat.XYWH,
+            labels=labels,
+            colors=[BOX_COLOR] * len(det),
+            draw_order=3.0,
+        ),
+    )
+
+
+def _log_instances(rr: Any, rec: Any, meshes: _Meshes, kind: str, poses: Poses) -> None:
+    """Move the instances of each object's mesh under ``world/{kind}`` to this frame's poses."""
+    for o, p in poses.items():
+        meshes(o)
+        entity = f"world/{kind}/obj_{o:06d}"
+        if p:
+            pose = rr.InstancePoses3D(
+                translations=np.array([pt for _, pt in p], float),
+                mat3x3=np.array([pR for pR, _ in p], float),
+            )
+        else:  # no instance in this frame: one instance scaled to nothing
+            pose = rr.InstancePoses3D(translations=[[0.0, 0.0, 0.0]], scales=[[0.0] * 3])
+        rec.log(entity, pose)
+
+
 def _log_images(
     rr: Any,
     rec: Any,
@@ -392,109 +516,26 @@ def _log_images(
     obj_ids = sorted({int(o) for o in est.obj_id} | set(dataset.obj_ids))
     est_key = pd.DataFrame({"scene_id": est.scene_id, "im_id": est.im_id})
     est_groups = est_key.groupby(["scene_id", "im_id"]).indices
-    models: dict[int, Any] = {}
-    closed: dict[int, bool] = {}
-
-    def model(obj_id: int) -> Any:
-        if obj_id not in models:
-            mdl = models[obj_id] = dataset.model(obj_id)
-            closed[obj_id] = is_closed(mdl.faces)
-            # The mesh once (static, model frame, mm); each frame only moves its instances.
-            for kind, color in (("gt", GT_COLOR), ("est", EST_COLOR)):
-                rec.log(
-                    f"world/{kind}/obj_{obj_id:06d}",
-                    rr.Mesh3D(
-                        vertex_positions=mdl.pts,
-                        triangle_indices=mdl.faces,
-                        albedo_factor=[*color, 255],
-                    ),
-                    static=True,
-                )
-        return models[obj_id]
-
+    meshes = _Meshes(rr, rec, dataset)
     for r in frames.itertuples(index=False):
         s, im = int(r.scene_id), int(r.im_id)
-        scene = dataset.scene(s)
-        K = scene.camera[im].K
         rec.set_time("frame", sequence=int(r.frame))
-        try:
-            rgb = load_rgb(scene.rgb_path(im))
-        except (OSError, BopsurgError):
-            rgb = None
-        if rgb is not None:
-            h, w = rgb.shape[:2]
-        else:
-            w, h = dataset.image_size(s)
-        rec.log(
-            "world/camera",
-            rr.Pinhole(image_from_camera=K, resolution=[w, h], camera_xyz=rr.ViewCoordinates.RDF),
-        )
-        if rgb is not None:
-            ok, jpg = cv2.imencode(
-                ".jpg",
-                cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY],
-            )
-            if ok:
-                rec.log(
-                    "world/camera/rgb",
-                    rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"),
-                )
-        gt_mask = np.zeros((h, w), np.uint8)
-        est_mask = np.zeros((h, w), np.uint8)
-        gt_poses: dict[int, list] = {o: [] for o in obj_ids}
-        est_poses: dict[int, list] = {o: [] for o in obj_ids}
-        for gt_id, g in enumerate(scene.gt.get(im, [])):
-            if g.t[2] <= 0:
-                continue
-            gt_poses.setdefault(g.obj_id, []).append((g.R, g.t))
-            mpath = scene.mask_visib_path(im, gt_id)
-            if mpath.is_file():
-                m = load_mask(mpath)
-                if m.shape == gt_mask.shape:
-                    gt_mask[m] = 1
-                    continue
-            mdl = model(g.obj_id)
-            gt_mask |= project_silhouette(
-                mdl.pts, mdl.faces, K, g.R, g.t, (h, w), closed=closed[g.obj_id]
-            )
+        shape = _log_camera(rr, rec, dataset, s, im)
+        K = dataset.scene(s).camera[im].K
+        gt_poses: Poses = {o: [] for o in obj_ids}
+        est_poses: Poses = {o: [] for o in obj_ids}
+        gt_mask = _gt_silhouette(dataset, meshes, s, im, shape, gt_poses)
+        est_mask = np.zeros(shape, np.uint8)
         for e in est_groups.get((s, im), []):
             o = int(est.obj_id[e])
             est_poses.setdefault(o, []).append((est.R[e], est.t[e]))
-            mdl = model(o)
-            est_mask |= project_silhouette(
-                mdl.pts, mdl.faces, K, est.R[e], est.t[e], (h, w), closed=closed[o]
-            )
-        rec.log(
-            "world/camera/gt_silhouette",
-            rr.SegmentationImage(gt_mask, opacity=0.45, draw_order=1.0),
-        )
-        rec.log(
-            "world/camera/est_silhouette",
-            rr.SegmentationImage(est_mask, opacity=0.45, draw_order=2.0),
-        )
-        if detections:
-            det = detections.get((s, im), Detections.empty())
-            labels = [f"obj {o} {sc:.2f}" for o, sc in zip(det.obj_id, det.score, strict=True)]
+            est_mask |= meshes.silhouette(o, K, est.R[e], est.t[e], shape)
+        for name, mask, order in (("gt", gt_mask, 1.0), ("est", est_mask, 2.0)):
             rec.log(
-                "world/camera/boxes",
-                rr.Boxes2D(
-                    array=det.bbox,
-                    array_format=rr.Box2DFormat.XYWH,
-                    labels=labels,
-                    colors=[BOX_COLOR] * len(det),
-                    draw_order=3.0,
-                ),
+                f"world/camera/{name}_silhouette",
+                rr.SegmentationImage(mask, opacity=0.45, draw_order=order),
             )
-        for kind, poses in (("gt", gt_poses), ("est", est_poses)):
-            for o, p in poses.items():
-                model(o)
-                entity = f"world/{kind}/obj_{o:06d}"
-                if p:
-                    pose = rr.InstancePoses3D(
-                        translations=np.array([pt for _, pt in p], float),
-                        mat3x3=np.array([pR for pR, _ in p], float),
-                    )
-                else:  # no instance in this frame: one instance scaled to nothing
-                    pose = rr.InstancePoses3D(translations=[[0.0, 0.0, 0.0]], scales=[[0.0] * 3])
-                rec.log(entity, pose)
+        if detections:
+            _log_boxes(rr, rec, detections.get((s, im), Detections.empty()))
+        _log_instances(rr, rec, meshes, "gt", gt_poses)
+        _log_instances(rr, rec, meshes, "est", est_poses)

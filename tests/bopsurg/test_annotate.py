@@ -10,7 +10,7 @@ import pytest
 from bopsurg.annotate import annotate_dataset
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask, save_depth, save_rgb
-from bopsurg.bop.models import ObjectModel, compute_model_info, save_models_info, save_ply
+from bopsurg.bop.meshes import ObjectModel, compute_model_info, save_models_info, save_ply
 from bopsurg.bop.scene import CameraInfo, GtPose, save_scene_camera, save_scene_gt
 from bopsurg.errors import DatasetError
 

@@ -152,15 +152,13 @@ def test_literal_defaults_and_help_lines_match_the_code():
     import dataclasses
     import importlib
 
-    from bopsurg.cli import annotate_cmd, eval_cmd, example_cmd, viz_cmd
+    from bopsurg.cli import annotate_cmd, example_cmd, viz_cmd
     from bopsurg.cli.commands import PLUGIN_HELP
-    from bopsurg.evaluation.runner import INSTANCE_METRICS
     from bopsurg.example import ExampleSpec
     from bopsurg.plugins import available_plugins
     from bopsurg.visibility import DEFAULT_DELTA_MM
     from bopsurg.viz.rerun_log import DEFAULT_IMAGE_FRAMES
 
-    assert ",".join(INSTANCE_METRICS) == eval_cmd.METRICS
     assert annotate_cmd.DEFAULT_DELTA_MM == DEFAULT_DELTA_MM
     fields = {f.name: f.default for f in dataclasses.fields(ExampleSpec)}
     assert {k: fields[k] for k in example_cmd.SPEC_DEFAULTS} == example_cmd.SPEC_DEFAULTS

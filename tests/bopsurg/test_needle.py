@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from bopsurg.bop.models import compute_model_info
+from bopsurg.bop.meshes import compute_model_info
 from bopsurg.needle import NeedleSpec, needle_mesh
 
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import (
     CameraSpec,
     LightSpec,

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import (
     NEEDLE,
     CameraSpec,

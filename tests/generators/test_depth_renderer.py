@@ -15,7 +15,7 @@ pytest.importorskip("pybullet")
 trimesh = pytest.importorskip("trimesh")
 pytest.importorskip("rtree")  # trimesh ray casting
 
-from bopsurg.bop.models import ObjectModel  # noqa: E402
+from bopsurg.bop.meshes import ObjectModel  # noqa: E402
 from bopsurg.generators.depth_renderer import PyBulletDepthRenderer, model_key  # noqa: E402
 from bopsurg.needle import needle_mesh  # noqa: E402
 from bopsurg.plugins import DepthRenderer, load_plugin  # noqa: E402

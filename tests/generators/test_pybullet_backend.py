@@ -17,7 +17,7 @@ pytest.importorskip("pybullet")
 pytest.importorskip("trimesh")
 pytest.importorskip("rtree")
 
-from bopsurg.bop.models import ObjectModel
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators import pybullet_scene as ps
 from bopsurg.generators.backend import (
     DEFAULT_ECM_JOINTS,

@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.jsonio import load_json
-from bopsurg.bop.models import load_models_info, save_models_info
+from bopsurg.bop.meshes import load_models_info, save_models_info
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.bop.targets import ImageTarget, enumerate_image_targets, save_image_targets
 from tests.bopsurg.evaluation.conftest import build_synthetic

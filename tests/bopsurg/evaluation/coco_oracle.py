@@ -38,7 +38,7 @@ from bopsurg.bop.coco import (
 from bopsurg.bop.dataset import BopDataset, save_camera_json
 from bopsurg.bop.images import save_mask
 from bopsurg.bop.jsonio import load_json, save_json
-from bopsurg.bop.models import save_models_info
+from bopsurg.bop.meshes import save_models_info
 from bopsurg.bop.scene import (
     CameraInfo,
     GtInfo,

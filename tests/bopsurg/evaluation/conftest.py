@@ -11,7 +11,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.dataset import save_camera_json
-from bopsurg.bop.models import ObjectModel, compute_model_info, save_models_info, save_ply
+from bopsurg.bop.meshes import ObjectModel, compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.bop.scene import (
     CameraInfo,

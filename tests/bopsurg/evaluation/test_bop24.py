@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bopsurg.bop.dataset import BopDataset, save_camera_json
-from bopsurg.bop.models import compute_model_info, save_models_info, save_ply
+from bopsurg.bop.meshes import compute_model_info, save_models_info, save_ply
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.bop.scene import (
     CameraInfo,

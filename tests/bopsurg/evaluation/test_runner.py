@@ -11,7 +11,7 @@ import pytest
 from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.results import PoseEstimates, load_results
-from bopsurg.evaluation.runner import ERROR_COLUMNS, evaluate, write_evaluation
+from bopsurg.evaluation.runner import error_columns, evaluate, write_evaluation
 from bopsurg.evaluation.summary import describe, format_table
 from bopsurg.example import ExampleSpec, write_example_dataset
 from tests.helpers import estimates_from_gt
@@ -103,7 +103,7 @@ def test_outputs_are_written(example, tmp_path):
     res = evaluate(ds, est)
     write_evaluation(res, tmp_path, meta={"dataset": "x"})
     errors = pd.read_csv(tmp_path / "errors.csv")
-    assert tuple(errors.columns) == ERROR_COLUMNS
+    assert tuple(errors.columns) == error_columns()
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["dataset"] == "x"
     assert set(summary["table"]) == {"re", "te", "mssd"}

@@ -449,8 +449,10 @@ def _extreme_points(pts: F64) -> F64:
     """A subset of ``pts`` that contains both ends of every diameter (hull vertices)."""
     if len(pts) <= 4:
         return pts
+    hull: F64
     try:
-        return pts[ConvexHull(pts).vertices]
+        hull = pts[ConvexHull(pts).vertices]
+        return hull
     except QhullError:
         pass
     # Degenerate (flat or collinear): take the hull in the plane/line the points span.
@@ -463,7 +465,8 @@ def _extreme_points(pts: F64) -> F64:
     if rank == 1:
         return pts[[int(coords.argmin()), int(coords.argmax())]]
     try:
-        return pts[ConvexHull(coords[:, :2]).vertices]
+        hull = pts[ConvexHull(coords[:, :2]).vertices]
+        return hull
     except QhullError:
         return pts
 
