@@ -14,30 +14,17 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError
-from bopsurg.models.checkpoint import save_checkpoint
 from bopsurg.models.data import DetectionSet, load_detection_set, split_scenes
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
 from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
-from bopsurg.models.detector.ema import ModelEMA
-from bopsurg.models.training import (
-    RunFolder,
-    RunSettings,
-    Timer,
-    batches,
-    epoch_generator,
-    flat_cosine_lr,
-    format_record,
-    param_groups,
-    provenance,
-    resolve_device,
-)
+from bopsurg.models.training import Export, RunFolder, RunSettings, StepFn, fit, resolve_device
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +44,8 @@ class DetectorRecipe:
     flip: float = 0.5
     min_visib: float = 0.1
     val_every: int = 5
+    #: YOLOX anneals right after the warm-up: a constant of the recipe, not a knob.
+    anneal_from: ClassVar[float] = 0.0
 
 
 @torch.no_grad()
@@ -151,73 +140,30 @@ def train_detector(
         min_visib=recipe.min_visib, progress=progress,
     )  # fmt: skip
     log.info("detector: %d train images, %d validation images", len(train), len(val))
-
     model = YoloxDetector(cfg).to(dev)
-    ema = ModelEMA(model, tau=500.0)
-    opt = torch.optim.AdamW(param_groups(model, recipe.weight_decay), lr=recipe.lr)
-    steps_per_epoch = max(1, len(train) // recipe.batch_size)
-    total = recipe.epochs * steps_per_epoch
-    warmup = int(recipe.warmup_epochs * steps_per_epoch)
-    start = 0
-    timer = Timer()
-    if state is not None:
-        model.load_state_dict(state["model"])
-        ema.load_state_dict(state["ema"])
-        opt.load_state_dict(state["optimizer"])
-        start = int(state["epoch"]) + 1
-        timer = Timer(float(state["seconds"]))
+    meta = {"classes": list(classes)}
+    export = Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
+    return fit(
+        model, run, state, recipe, n_train=len(train), step=_step_fn(model, train, recipe, dev),
+        validate=lambda ema: validate(ema, val, dev), export=export, device=dev, progress=progress,
+    )  # fmt: skip
+
+
+def _step_fn(
+    model: YoloxDetector, train: DetectionSet, recipe: DetectorRecipe, dev: torch.device
+) -> StepFn:
+    """The detector's training step: augment a batch (HSV, flip, scale/translate), YOLOX
+    losses with the L1 box term from epoch ``l1_from`` on."""
     l1_from = math.ceil(recipe.epochs * (1 - recipe.l1_fraction))
 
-    export = Path(out) / "detector.pt"
-    for epoch in range(start, recipe.epochs):
-        gen = epoch_generator(seed, epoch)
-        model.train()
-        sums: dict[str, float] = {}
-        bar = tqdm(
-            batches(len(train), recipe.batch_size, gen), total=steps_per_epoch,
-            desc=f"detector {epoch + 1}/{recipe.epochs}", disable=not progress, leave=False,
-        )  # fmt: skip
-        for k, idx in enumerate(bar):
-            step = epoch * steps_per_epoch + k
-            for g in opt.param_groups:
-                g["lr"] = flat_cosine_lr(step, total, warmup, 0.0, recipe.lr)
-            images = train.images[idx].to(dev).float() / 255
-            targets = [train.targets[i].to(dev) for i in idx.tolist()]
-            images = hsv_jitter(images, gen)
-            images, targets = random_flip(images, targets, gen, p=recipe.flip)
-            images, targets = random_affine(
-                images, targets, gen, scale=recipe.scale, translate=recipe.translate
-            )
-            losses = model.loss(model(images), targets, use_l1=epoch >= l1_from)
-            opt.zero_grad(set_to_none=True)
-            losses["total"].backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            opt.step()
-            ema.update(model)
-            for name, v in losses.items():
-                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
-            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
-        record = {"epoch": epoch, "lr": opt.param_groups[0]["lr"]}
-        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
-        last = epoch == recipe.epochs - 1
-        if last or (epoch + 1) % recipe.val_every == 0:
-            record.update({f"val_{n}": v for n, v in validate(ema.ema, val, dev).items()})
-        record["seconds"] = round(timer.seconds, 1)
-        log.info("detector epoch %d: %s", epoch + 1, format_record(record))
-        save_checkpoint(
-            export, ema.ema.state_dict(), kind="detector", config=cfg.to_dict(),
-            meta={
-                "classes": list(classes), "epoch": epoch + 1,
-                "validation": {k: v for k, v in record.items() if k.startswith("val_")},
-                **provenance(settings, timer.seconds, dev),
-            },
-            half=True,
-        )  # fmt: skip
-        run.save_state(
-            {
-                "model": model.state_dict(), "ema": ema.state_dict(),
-                "optimizer": opt.state_dict(), "epoch": epoch, "seconds": timer.seconds,
-            }
-        )  # fmt: skip
-        run.append_log(record)
-    return export
+    def step(idx: torch.Tensor, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
+        images = train.images[idx].to(dev).float() / 255
+        targets = [train.targets[i].to(dev) for i in idx.tolist()]
+        images = hsv_jitter(images, gen)
+        images, targets = random_flip(images, targets, gen, p=recipe.flip)
+        images, targets = random_affine(
+            images, targets, gen, scale=recipe.scale, translate=recipe.translate
+        )
+        return model.loss(model(images), targets, use_l1=epoch >= l1_from)
+
+    return step

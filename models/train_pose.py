@@ -20,15 +20,12 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.geometry import rotation_about_axis
-from bopsurg.models.checkpoint import save_checkpoint
 from bopsurg.models.data import PoseSet, load_pose_set, split_scenes
 from bopsurg.models.detector.augment import hsv_jitter
-from bopsurg.models.detector.ema import ModelEMA
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
 from bopsurg.models.pose.encodings import (
@@ -40,18 +37,7 @@ from bopsurg.models.pose.losses import gdr_losses
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser, farthest_point_sampling, xyz_to_region
-from bopsurg.models.training import (
-    RunFolder,
-    RunSettings,
-    Timer,
-    batches,
-    epoch_generator,
-    flat_cosine_lr,
-    format_record,
-    param_groups,
-    provenance,
-    resolve_device,
-)
+from bopsurg.models.training import Export, RunFolder, RunSettings, StepFn, fit, resolve_device
 
 log = logging.getLogger(__name__)
 
@@ -281,66 +267,32 @@ def train_pose(
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
 
     model = GdrPoseNet(cfg).to(dev)
-    ema = ModelEMA(model, tau=500.0)
-    opt = torch.optim.AdamW(param_groups(model, recipe.weight_decay), lr=recipe.lr)
-    steps_per_epoch = max(1, len(train) // recipe.batch_size)
-    total = recipe.epochs * steps_per_epoch
-    warmup = int(recipe.warmup_epochs * steps_per_epoch)
-    start, timer = 0, Timer()
-    if state is not None:
-        model.load_state_dict(state["model"])
-        ema.load_state_dict(state["ema"])
-        opt.load_state_dict(state["optimizer"])
-        start, timer = int(state["epoch"]) + 1, Timer(float(state["seconds"]))
+    export = Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
+    step = _step_fn(model, train, cfg, geo, recipe, dev)
+    return fit(
+        model, run, state, recipe, n_train=len(train), step=step,
+        validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export, device=dev,
+        progress=progress,
+    )  # fmt: skip
+
+
+def _step_fn(
+    model: GdrPoseNet,
+    train: PoseSet,
+    cfg: PoseConfig,
+    geo: ObjectGeometry,
+    recipe: PoseRecipe,
+    dev: torch.device,
+) -> StepFn:
+    """The pose head's training step: jittered ROIs of a batch, the GDR-Net losses."""
     points = geo.points.to(dev)
     syms = None if geo.sym_rotations is None else geo.sym_rotations.to(dev)
 
-    export = Path(out) / "pose.pt"
-    for epoch in range(start, recipe.epochs):
-        gen = epoch_generator(seed, epoch)
-        model.train()
-        sums: dict[str, float] = {}
-        bar = tqdm(
-            batches(len(train), recipe.batch_size, gen), total=steps_per_epoch,
-            desc=f"pose {epoch + 1}/{recipe.epochs}", disable=not progress, leave=False,
-        )  # fmt: skip
-        for k, idx in enumerate(bar):
-            step = epoch * steps_per_epoch + k
-            for g in opt.param_groups:
-                g["lr"] = flat_cosine_lr(step, total, warmup, recipe.anneal_from, recipe.lr)
-            roi_img, coord2d, target = roi_batch(train, idx, cfg, geo, dev, gen, recipe.hsv)
-            losses = gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
-            opt.zero_grad(set_to_none=True)
-            losses["total"].backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            opt.step()
-            ema.update(model)
-            for name, v in losses.items():
-                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
-            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
-        record: dict[str, Any] = {"epoch": epoch, "lr": opt.param_groups[0]["lr"]}
-        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
-        if epoch == recipe.epochs - 1 or (epoch + 1) % recipe.val_every == 0:
-            record.update({f"val_{n}": v for n, v in validate(ema.ema, val, cfg, geo, dev).items()})
-        record["seconds"] = round(timer.seconds, 1)
-        log.info("pose epoch %d: %s", epoch + 1, format_record(record))
-        save_checkpoint(
-            export, ema.ema.state_dict(), kind="pose", config=cfg.to_dict(),
-            meta={
-                **geo.to_meta(), "epoch": epoch + 1,
-                "validation": {k: v for k, v in record.items() if k.startswith("val_")},
-                **provenance(settings, timer.seconds, dev),
-            },
-            half=True,
-        )  # fmt: skip
-        run.save_state(
-            {
-                "model": model.state_dict(), "ema": ema.state_dict(),
-                "optimizer": opt.state_dict(), "epoch": epoch, "seconds": timer.seconds,
-            }
-        )  # fmt: skip
-        run.append_log(record)
-    return export
+    def step(idx: torch.Tensor, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
+        roi_img, coord2d, target = roi_batch(train, idx, cfg, geo, dev, gen, recipe.hsv)
+        return gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
+
+    return step
 
 
 def _head(data: PoseSet, n: int) -> PoseSet:

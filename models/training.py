@@ -1,4 +1,11 @@
-"""What the detector and pose trainers share: devices, seeds, schedules, resumable state, logs.
+"""The one epoch loop of the detector and pose trainers, and what it needs: devices, seeds,
+schedules, resumable state, logs.
+
+A trainer builds its data and network, then hands :func:`fit` a *step function* (one batch of
+indices → named scalar losses with a ``"total"``) and a *validation function* (EMA network →
+named metrics). :func:`fit` owns everything else: the AdamW optimiser with decay on weights
+only, the warm-up + flat + cosine schedule, the EMA, gradient clipping, resuming, the
+validation cadence, the exported checkpoint, the training state and the log.
 
 A training run lives in one folder::
 
@@ -18,17 +25,19 @@ import logging
 import math
 import platform
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 from torch import nn
+from tqdm import tqdm
 
 from bopsurg.atomic import atomic_path, write_text
 from bopsurg.errors import BopsurgError, CheckpointError
-from bopsurg.models.checkpoint import load_tensors
+from bopsurg.models.checkpoint import load_tensors, save_checkpoint
+from bopsurg.models.detector.ema import ModelEMA
 
 log = logging.getLogger(__name__)
 
@@ -198,3 +207,166 @@ class Timer:
     @property
     def seconds(self) -> float:
         return time.perf_counter() - self.start
+
+
+class Recipe(Protocol):
+    """The hyper-parameters :func:`fit` reads from a trainer's recipe dataclass."""
+
+    @property
+    def epochs(self) -> int: ...
+    @property
+    def batch_size(self) -> int: ...
+    @property
+    def lr(self) -> float: ...
+    @property
+    def weight_decay(self) -> float: ...
+    @property
+    def warmup_epochs(self) -> float: ...
+    @property
+    def anneal_from(self) -> float: ...
+    @property
+    def val_every(self) -> int: ...
+
+
+#: One training step's losses: ``(batch indices, epoch generator, epoch) → {name: scalar}``
+#: with a ``"total"`` that is back-propagated; every entry is averaged into the log.
+StepFn = Callable[[torch.Tensor, torch.Generator, int], dict[str, torch.Tensor]]
+#: Validation of the EMA network: ``network → {name: value}`` (logged with a ``val_`` prefix).
+ValidateFn = Callable[[nn.Module], dict[str, float]]
+
+
+@dataclass(frozen=True)
+class Export:
+    """The checkpoint :func:`fit` writes after every epoch (EMA weights, float16).
+
+    Attributes:
+        path: The ``.pt`` file (its ``.json`` twin is written beside it).
+        kind: ``"detector"`` or ``"pose"``, checked on load.
+        config: The network's config dict.
+        meta: What the estimator needs beside the weights (classes, object geometry ...);
+            ``fit`` adds the epoch, the validation and the provenance.
+    """
+
+    path: Path
+    kind: str
+    config: dict[str, Any]
+    meta: dict[str, Any]
+
+
+@dataclass
+class _Progress:
+    """Optimiser, EMA and the first epoch to run: fresh, or restored from a saved state."""
+
+    opt: torch.optim.Optimizer
+    ema: ModelEMA
+    start: int
+    timer: Timer
+
+
+def fit(
+    model: nn.Module,
+    run: RunFolder,
+    state: dict[str, Any] | None,
+    recipe: Recipe,
+    *,
+    n_train: int,
+    step: StepFn,
+    validate: ValidateFn,
+    export: Export,
+    device: torch.device,
+    progress: bool = True,
+) -> Path:
+    """Train ``model`` for the remaining epochs of ``recipe``; returns ``export.path``.
+
+    Per step: the learning rate of :func:`flat_cosine_lr`, ``step``'s losses, backward,
+    gradient norm clipped to 10, AdamW, EMA update. Per epoch: validation of the EMA network
+    after every ``val_every``-th and the last epoch, then the export, the training state
+    and the log line, so a run killed at any point resumes after its last finished epoch.
+
+    Args:
+        model: The network, on ``device``, freshly initialised (seeded by the caller).
+        run: The run folder.
+        state: :meth:`RunFolder.load_state`'s result (None: a fresh run).
+        recipe: Epochs, batch size, peak lr, weight decay, warm-up epochs, anneal start (a
+            fraction of all steps), validation cadence (epochs).
+        n_train: Training samples; each epoch is ``n_train // batch_size`` steps.
+        step: Losses of one batch.
+        validate: Metrics of the EMA network.
+        export: Where and how the exported checkpoint is written.
+        device: Where the model lives (recorded in the provenance).
+        progress: Show a progress bar per epoch.
+    """
+    steps_per_epoch = max(1, n_train // recipe.batch_size)
+    total = recipe.epochs * steps_per_epoch
+    warmup = int(recipe.warmup_epochs * steps_per_epoch)
+    p = _start(model, state, recipe)
+    for epoch in range(p.start, recipe.epochs):
+        gen = epoch_generator(run.settings.seed, epoch)
+        model.train()
+        sums: dict[str, float] = {}
+        bar = tqdm(
+            batches(n_train, recipe.batch_size, gen), total=steps_per_epoch,
+            desc=f"{export.kind} {epoch + 1}/{recipe.epochs}", disable=not progress, leave=False,
+        )  # fmt: skip
+        for k, idx in enumerate(bar):
+            done = epoch * steps_per_epoch + k  # steps before this one
+            lr = flat_cosine_lr(done, total, warmup, recipe.anneal_from, recipe.lr)
+            for g in p.opt.param_groups:
+                g["lr"] = lr
+            losses = step(idx, gen, epoch)
+            p.opt.zero_grad(set_to_none=True)
+            losses["total"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            p.opt.step()
+            p.ema.update(model)
+            for name, v in losses.items():
+                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
+            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
+        record: dict[str, Any] = {"epoch": epoch, "lr": p.opt.param_groups[0]["lr"]}
+        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
+        if epoch == recipe.epochs - 1 or (epoch + 1) % recipe.val_every == 0:
+            record.update({f"val_{n}": v for n, v in validate(p.ema.ema).items()})
+        record["seconds"] = round(p.timer.seconds, 1)
+        log.info("%s epoch %d: %s", export.kind, epoch + 1, format_record(record))
+        _end_epoch(model, run, p, export, record, device)
+    return export.path
+
+
+def _start(model: nn.Module, state: dict[str, Any] | None, recipe: Recipe) -> _Progress:
+    """Optimiser and EMA of ``model``, restored from ``state`` when resuming."""
+    ema = ModelEMA(model, tau=500.0)
+    opt = torch.optim.AdamW(param_groups(model, recipe.weight_decay), lr=recipe.lr)
+    if state is None:
+        return _Progress(opt, ema, 0, Timer())
+    model.load_state_dict(state["model"])
+    ema.load_state_dict(state["ema"])
+    opt.load_state_dict(state["optimizer"])
+    return _Progress(opt, ema, int(state["epoch"]) + 1, Timer(float(state["seconds"])))
+
+
+def _end_epoch(
+    model: nn.Module,
+    run: RunFolder,
+    p: _Progress,
+    export: Export,
+    record: dict[str, Any],
+    device: torch.device,
+) -> None:
+    """Export the EMA weights, then save the training state and the log line of the epoch."""
+    epoch = record["epoch"]
+    save_checkpoint(
+        export.path, p.ema.ema.state_dict(), kind=export.kind, config=export.config,
+        meta={
+            **export.meta, "epoch": epoch + 1,
+            "validation": {k: v for k, v in record.items() if k.startswith("val_")},
+            **provenance(run.settings, p.timer.seconds, device),
+        },
+        half=True,
+    )  # fmt: skip
+    run.save_state(
+        {
+            "model": model.state_dict(), "ema": p.ema.state_dict(),
+            "optimizer": p.opt.state_dict(), "epoch": epoch, "seconds": p.timer.seconds,
+        }
+    )  # fmt: skip
+    run.append_log(record)
