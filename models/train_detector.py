@@ -14,7 +14,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import cast
 
 import numpy as np
 import torch
@@ -24,7 +24,15 @@ from bopsurg.errors import BopsurgError
 from bopsurg.models.data import DetectionSet, load_detection_set, split_scenes
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
 from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
-from bopsurg.models.training import Export, RunFolder, RunSettings, StepFn, fit, resolve_device
+from bopsurg.models.training import (
+    Export,
+    RunFolder,
+    RunSettings,
+    Schedule,
+    StepFn,
+    fit,
+    resolve_device,
+)
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +52,15 @@ class DetectorRecipe:
     flip: float = 0.5
     min_visib: float = 0.1
     val_every: int = 5
-    #: YOLOX anneals right after the warm-up: a constant of the recipe, not a knob.
-    anneal_from: ClassVar[float] = 0.0
+
+    def schedule(self) -> Schedule:
+        """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
+        e, b, w = self.epochs, self.batch_size, self.warmup_epochs
+        return Schedule(e, b, self.lr, self.weight_decay, w, 0.0, self.val_every)
 
 
 @torch.no_grad()
-def validate(model: torch.nn.Module, data: DetectionSet, device: torch.device) -> dict[str, float]:
+def validate(model: YoloxDetector, data: DetectionSet, device: torch.device) -> dict[str, float]:
     """Top-1 box per GT instance: recall at IoU 0.5 and mean IoU; false positives = images
     without GT where the best score is >= 0.3."""
     if len(data) == 0:
@@ -143,9 +154,11 @@ def train_detector(
     model = YoloxDetector(cfg).to(dev)
     meta = {"classes": list(classes)}
     export = Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
+    step = _step_fn(model, train, recipe, dev)
     return fit(
-        model, run, state, recipe, n_train=len(train), step=_step_fn(model, train, recipe, dev),
-        validate=lambda ema: validate(ema, val, dev), export=export, device=dev, progress=progress,
+        model, run, state, recipe.schedule(), n_train=len(train), step=step,
+        validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev), export=export,
+        device=dev, progress=progress,
     )  # fmt: skip
 
 

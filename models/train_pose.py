@@ -37,7 +37,15 @@ from bopsurg.models.pose.losses import gdr_losses
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser, farthest_point_sampling, xyz_to_region
-from bopsurg.models.training import Export, RunFolder, RunSettings, StepFn, fit, resolve_device
+from bopsurg.models.training import (
+    Export,
+    RunFolder,
+    RunSettings,
+    Schedule,
+    StepFn,
+    fit,
+    resolve_device,
+)
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +67,11 @@ class PoseRecipe:
     hsv: tuple[float, float, float] = (0.015, 0.5, 0.4)
     val_every: int = 5
     symmetric: bool = False
+
+    def schedule(self) -> Schedule:
+        """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
+        e, b, w = self.epochs, self.batch_size, self.warmup_epochs
+        return Schedule(e, b, self.lr, self.weight_decay, w, self.anneal_from, self.val_every)
 
 
 @dataclass(frozen=True)
@@ -270,7 +283,7 @@ def train_pose(
     export = Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
     step = _step_fn(model, train, cfg, geo, recipe, dev)
     return fit(
-        model, run, state, recipe, n_train=len(train), step=step,
+        model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export, device=dev,
         progress=progress,
     )  # fmt: skip

@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import torch
 from torch import nn
@@ -83,7 +83,8 @@ def flat_cosine_lr(step: int, total: int, warmup: int, anneal_from: float, base:
 
 def param_groups(model: nn.Module, weight_decay: float) -> list[dict[str, Any]]:
     """Weight decay on conv/linear weights only (not norms or biases), as YOLOX and GDRNPP."""
-    decay, no_decay = [], []
+    decay: list[nn.Parameter] = []
+    no_decay: list[nn.Parameter] = []
     for name, p in model.named_parameters():
         if not p.requires_grad:
             continue
@@ -209,23 +210,27 @@ class Timer:
         return time.perf_counter() - self.start
 
 
-class Recipe(Protocol):
-    """The hyper-parameters :func:`fit` reads from a trainer's recipe dataclass."""
+@dataclass(frozen=True)
+class Schedule:
+    """The hyper-parameters the epoch loop reads from a trainer's recipe.
 
-    @property
-    def epochs(self) -> int: ...
-    @property
-    def batch_size(self) -> int: ...
-    @property
-    def lr(self) -> float: ...
-    @property
-    def weight_decay(self) -> float: ...
-    @property
-    def warmup_epochs(self) -> float: ...
-    @property
-    def anneal_from(self) -> float: ...
-    @property
-    def val_every(self) -> int: ...
+    Attributes:
+        epochs: Epochs of the whole run (a resume may raise it).
+        batch_size: Samples per step; an epoch is ``n_train // batch_size`` steps.
+        lr: Peak learning rate.
+        weight_decay: AdamW decay of conv/linear weights.
+        warmup_epochs: Quadratic warm-up length, epochs.
+        anneal_from: Start of the cosine, a fraction of all steps (0: right after warm-up).
+        val_every: Validation cadence, epochs (the last epoch is always validated).
+    """
+
+    epochs: int
+    batch_size: int
+    lr: float
+    weight_decay: float
+    warmup_epochs: float
+    anneal_from: float
+    val_every: int
 
 
 #: One training step's losses: ``(batch indices, epoch generator, epoch) → {name: scalar}``
@@ -267,7 +272,7 @@ def fit(
     model: nn.Module,
     run: RunFolder,
     state: dict[str, Any] | None,
-    recipe: Recipe,
+    schedule: Schedule,
     *,
     n_train: int,
     step: StepFn,
@@ -276,7 +281,7 @@ def fit(
     device: torch.device,
     progress: bool = True,
 ) -> Path:
-    """Train ``model`` for the remaining epochs of ``recipe``; returns ``export.path``.
+    """Train ``model`` for the remaining epochs of ``schedule``; returns ``export.path``.
 
     Per step: the learning rate of :func:`flat_cosine_lr`, ``step``'s losses, backward,
     gradient norm clipped to 10, AdamW, EMA update. Per epoch: validation of the EMA network
@@ -287,8 +292,7 @@ def fit(
         model: The network, on ``device``, freshly initialised (seeded by the caller).
         run: The run folder.
         state: :meth:`RunFolder.load_state`'s result (None: a fresh run).
-        recipe: Epochs, batch size, peak lr, weight decay, warm-up epochs, anneal start (a
-            fraction of all steps), validation cadence (epochs).
+        schedule: Epochs, batch size, learning-rate schedule, validation cadence.
         n_train: Training samples; each epoch is ``n_train // batch_size`` steps.
         step: Losses of one batch.
         validate: Metrics of the EMA network.
@@ -296,21 +300,21 @@ def fit(
         device: Where the model lives (recorded in the provenance).
         progress: Show a progress bar per epoch.
     """
-    steps_per_epoch = max(1, n_train // recipe.batch_size)
-    total = recipe.epochs * steps_per_epoch
-    warmup = int(recipe.warmup_epochs * steps_per_epoch)
-    p = _start(model, state, recipe)
-    for epoch in range(p.start, recipe.epochs):
+    steps_per_epoch = max(1, n_train // schedule.batch_size)
+    total = schedule.epochs * steps_per_epoch
+    warmup = int(schedule.warmup_epochs * steps_per_epoch)
+    p = _start(model, state, schedule)
+    for epoch in range(p.start, schedule.epochs):
         gen = epoch_generator(run.settings.seed, epoch)
         model.train()
         sums: dict[str, float] = {}
         bar = tqdm(
-            batches(n_train, recipe.batch_size, gen), total=steps_per_epoch,
-            desc=f"{export.kind} {epoch + 1}/{recipe.epochs}", disable=not progress, leave=False,
+            batches(n_train, schedule.batch_size, gen), total=steps_per_epoch,
+            desc=f"{export.kind} {epoch + 1}/{schedule.epochs}", disable=not progress, leave=False,
         )  # fmt: skip
         for k, idx in enumerate(bar):
             done = epoch * steps_per_epoch + k  # steps before this one
-            lr = flat_cosine_lr(done, total, warmup, recipe.anneal_from, recipe.lr)
+            lr = flat_cosine_lr(done, total, warmup, schedule.anneal_from, schedule.lr)
             for g in p.opt.param_groups:
                 g["lr"] = lr
             losses = step(idx, gen, epoch)
@@ -324,7 +328,7 @@ def fit(
             bar.set_postfix(loss=f"{losses['total'].item():.3f}")
         record: dict[str, Any] = {"epoch": epoch, "lr": p.opt.param_groups[0]["lr"]}
         record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
-        if epoch == recipe.epochs - 1 or (epoch + 1) % recipe.val_every == 0:
+        if epoch == schedule.epochs - 1 or (epoch + 1) % schedule.val_every == 0:
             record.update({f"val_{n}": v for n, v in validate(p.ema.ema).items()})
         record["seconds"] = round(p.timer.seconds, 1)
         log.info("%s epoch %d: %s", export.kind, epoch + 1, format_record(record))
@@ -332,10 +336,10 @@ def fit(
     return export.path
 
 
-def _start(model: nn.Module, state: dict[str, Any] | None, recipe: Recipe) -> _Progress:
+def _start(model: nn.Module, state: dict[str, Any] | None, schedule: Schedule) -> _Progress:
     """Optimiser and EMA of ``model``, restored from ``state`` when resuming."""
     ema = ModelEMA(model, tau=500.0)
-    opt = torch.optim.AdamW(param_groups(model, recipe.weight_decay), lr=recipe.lr)
+    opt = torch.optim.AdamW(param_groups(model, schedule.weight_decay), lr=schedule.lr)
     if state is None:
         return _Progress(opt, ema, 0, Timer())
     model.load_state_dict(state["model"])
