@@ -19,20 +19,11 @@ from typing import cast
 import numpy as np
 import torch
 
-from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError
-from bopsurg.models.data import DetectionSet, load_detection_set, split_scenes
+from bopsurg.models import training
+from bopsurg.models.data import DetectionSet, load_detection_set
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
 from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
-from bopsurg.models.training import (
-    Export,
-    RunFolder,
-    RunSettings,
-    Schedule,
-    StepFn,
-    fit,
-    resolve_device,
-)
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +44,12 @@ class DetectorRecipe:
     min_visib: float = 0.1
     val_every: int = 5
 
-    def schedule(self) -> Schedule:
+    def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
-        e, b, w = self.epochs, self.batch_size, self.warmup_epochs
-        return Schedule(e, b, self.lr, self.weight_decay, w, 0.0, self.val_every)
+        return training.Schedule(
+            self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
+            0.0, self.val_every,
+        )  # fmt: skip
 
 
 @torch.no_grad()
@@ -121,25 +114,21 @@ def train_detector(
         obj_ids: Objects to detect, one class each; None = the dataset's first object.
     """
     recipe = recipe or DetectorRecipe()
-    dev = resolve_device(device)
-    ds = BopDataset(dataset, split)
-    val_ds = BopDataset(dataset, val_split) if val_split else None
-    train_ids, val_ids = split_scenes(ds, 10, val_ds)
+    dev = training.resolve_device(device)
+    splits = training.open_splits(dataset, split, val_split)
+    ds = splits.train
     classes = tuple(obj_ids) if obj_ids else tuple(ds.obj_ids[:1])
     unknown = sorted(set(classes) - set(ds.obj_ids))
     if unknown:
         raise BopsurgError(f"--obj-ids: {unknown} not among the dataset's objects {ds.obj_ids}")
     cfg = DetectorConfig.preset(preset, num_classes=len(classes))
-    settings = RunSettings(
+    settings = training.RunSettings(
         "detector", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
         {"val_split": val_split, "max_images": max_images, "classes": list(classes)},
     )  # fmt: skip
-    run = RunFolder(out, settings, restart=restart)
-    state = run.load_state()
-
-    torch.manual_seed(seed)
+    run, state = training.open_run(out, settings, restart=restart)
     train = load_detection_set(
-        ds, train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib, progress=progress
+        ds, splits.train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib, progress=progress
     )
     if max_images is not None:
         train = DetectionSet(
@@ -147,15 +136,15 @@ def train_detector(
             train.scales[:max_images], train.classes,
         )  # fmt: skip
     val = load_detection_set(
-        val_ds or ds, val_ds.scene_ids if val_ds else val_ids, cfg.input_hw, classes,
-        min_visib=recipe.min_visib, progress=progress,
+        splits.val, splits.val_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
+        progress=progress,
     )  # fmt: skip
     log.info("detector: %d train images, %d validation images", len(train), len(val))
     model = YoloxDetector(cfg).to(dev)
     meta = {"classes": list(classes)}
-    export = Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
+    export = training.Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
     step = _step_fn(model, train, recipe, dev)
-    return fit(
+    return training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev), export=export,
         device=dev, progress=progress,
@@ -164,7 +153,7 @@ def train_detector(
 
 def _step_fn(
     model: YoloxDetector, train: DetectionSet, recipe: DetectorRecipe, dev: torch.device
-) -> StepFn:
+) -> training.StepFn:
     """The detector's training step: augment a batch (HSV, flip, scale/translate), YOLOX
     losses with the L1 box term from epoch ``l1_from`` on."""
     l1_from = math.ceil(recipe.epochs * (1 - recipe.l1_fraction))

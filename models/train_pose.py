@@ -24,7 +24,8 @@ import torch
 from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.geometry import rotation_about_axis
-from bopsurg.models.data import PoseSet, load_pose_set, split_scenes
+from bopsurg.models import training
+from bopsurg.models.data import PoseSet, load_pose_set
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
@@ -37,15 +38,6 @@ from bopsurg.models.pose.losses import gdr_losses
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser, farthest_point_sampling, xyz_to_region
-from bopsurg.models.training import (
-    Export,
-    RunFolder,
-    RunSettings,
-    Schedule,
-    StepFn,
-    fit,
-    resolve_device,
-)
 
 log = logging.getLogger(__name__)
 
@@ -68,10 +60,12 @@ class PoseRecipe:
     val_every: int = 5
     symmetric: bool = False
 
-    def schedule(self) -> Schedule:
+    def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
-        e, b, w = self.epochs, self.batch_size, self.warmup_epochs
-        return Schedule(e, b, self.lr, self.weight_decay, w, self.anneal_from, self.val_every)
+        return training.Schedule(
+            self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
+            self.anneal_from, self.val_every,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -253,36 +247,31 @@ def train_pose(
         max_instances: Use only the first N training instances (smoke tests).
     """
     recipe = recipe or PoseRecipe()
-    dev = resolve_device(device)
+    dev = training.resolve_device(device)
     cfg = PoseConfig.preset(preset)
     if recipe.symmetric:
         cfg = PoseConfig.from_dict({**cfg.to_dict(), "symmetric": True})
-    ds = BopDataset(dataset, split)
-    val_ds = BopDataset(dataset, val_split) if val_split else None
+    splits = training.open_splits(dataset, split, val_split)
+    ds = splits.train
     obj_id = ds.obj_ids[0] if obj_id is None else obj_id
-    train_ids, val_ids = split_scenes(ds, 10, val_ds)
-    settings = RunSettings(
+    settings = training.RunSettings(
         "pose", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
         {"val_split": val_split, "obj_id": obj_id, "max_instances": max_instances},
     )  # fmt: skip
-    run = RunFolder(out, settings, restart=restart)
-    state = run.load_state()
-
-    torch.manual_seed(seed)
+    run, state = training.open_run(out, settings, restart=restart)
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
-    train = load_pose_set(ds, train_ids, obj_id, min_visib=recipe.min_visib, progress=progress)
+    train = load_pose_set(
+        ds, splits.train_ids, obj_id, min_visib=recipe.min_visib, progress=progress
+    )
     if max_instances is not None:
         train = _head(train, max_instances)
-    val = load_pose_set(
-        val_ds or ds, val_ds.scene_ids if val_ds else val_ids, obj_id, min_visib=0.3,
-        progress=progress,
-    )  # fmt: skip
+    val = load_pose_set(splits.val, splits.val_ids, obj_id, min_visib=0.3, progress=progress)
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
 
     model = GdrPoseNet(cfg).to(dev)
-    export = Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
+    export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
     step = _step_fn(model, train, cfg, geo, recipe, dev)
-    return fit(
+    return training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export, device=dev,
         progress=progress,
@@ -296,7 +285,7 @@ def _step_fn(
     geo: ObjectGeometry,
     recipe: PoseRecipe,
     dev: torch.device,
-) -> StepFn:
+) -> training.StepFn:
     """The pose head's training step: jittered ROIs of a batch, the GDR-Net losses."""
     points = geo.points.to(dev)
     syms = None if geo.sym_rotations is None else geo.sym_rotations.to(dev)

@@ -35,8 +35,10 @@ from torch import nn
 from tqdm import tqdm
 
 from bopsurg.atomic import atomic_path, write_text
+from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError, CheckpointError
 from bopsurg.models.checkpoint import load_tensors, save_checkpoint
+from bopsurg.models.data import split_scenes
 from bopsurg.models.detector.ema import ModelEMA
 
 log = logging.getLogger(__name__)
@@ -178,6 +180,49 @@ def _resumable(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
         else:
             out[prefix + k] = v
     return out
+
+
+@dataclass(frozen=True)
+class Splits:
+    """Where a run's samples come from.
+
+    Attributes:
+        train: The training split.
+        train_ids: Its scenes that train.
+        val: The validation split (``train`` when scenes of it are held out).
+        val_ids: The validation scenes of ``val``.
+    """
+
+    train: BopDataset
+    train_ids: list[int]
+    val: BopDataset
+    val_ids: list[int]
+
+
+def open_splits(dataset: str | Path, split: str, val_split: str | None) -> Splits:
+    """``split`` of ``dataset`` for training; validation on all of ``val_split``, or, when
+    None, on every 10th scene of ``split`` held out (whole scenes: no shared trajectories)."""
+    ds = BopDataset(dataset, split)
+    val_ds = BopDataset(dataset, val_split) if val_split else None
+    train_ids, val_ids = split_scenes(ds, 10, val_ds)
+    if val_ds is None:
+        return Splits(ds, train_ids, ds, val_ids)
+    return Splits(ds, train_ids, val_ds, val_ds.scene_ids)
+
+
+def open_run(
+    out: str | Path, settings: RunSettings, *, restart: bool
+) -> tuple[RunFolder, dict[str, Any] | None]:
+    """The run folder ``out`` and its saved state (None: a fresh run), then torch's global
+    generator seeded with ``settings.seed`` for the network's initialisation.
+
+    Raises:
+        BopsurgError: ``out`` holds a run with other settings.
+    """
+    run = RunFolder(out, settings, restart=restart)
+    state = run.load_state()
+    torch.manual_seed(settings.seed)
+    return run, state
 
 
 def provenance(settings: RunSettings, seconds: float, device: torch.device) -> dict[str, Any]:
