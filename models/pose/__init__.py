@@ -1,7 +1,7 @@
 """GDR-Net-like 6D pose head in plain PyTorch (no torchvision).
 
 Modules, one concept each: :mod:`.config` (sizes and weights), :mod:`.encodings` (rot6d,
-allocentric ↔ egocentric, SITE; re-exports the two below), :mod:`.roi` (DZI boxes, crops, 2D
+allocentric ↔ egocentric, SITE), :mod:`.roi` (DZI boxes, crops, 2D
 coordinates), :mod:`.targets` (xyz maps, normalisation, regions), :mod:`.network`
 (:class:`GdrPoseNet`), :mod:`.losses` (:func:`gdr_losses`) and :mod:`.decode` (poses from
 outputs). Units follow BOP: mm, px, ``x_cam = R x_model + t``.

@@ -8,41 +8,14 @@ The network predicts the **allocentric** rotation (what a translation-invariant 
 see) as 6 numbers, and the translation as SITE ``(δx, δy, δz)`` relative to the crop; the
 functions here turn those into the egocentric ``R`` and ``t`` and back.
 
-The ROI and dense-target helpers live in :mod:`.roi` and :mod:`.targets` (one concept each) and
-are re-exported here, so ``encodings`` is the one import for all the pose-head geometry.
+The ROI and dense-target helpers live in :mod:`.roi` and :mod:`.targets`; the package
+(:mod:`bopsurg.models.pose`) is the one import for all of them.
 """
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-
-from bopsurg.models.pose.roi import crop, crop_theta, dzi_boxes, roi_coord_2d, roi_grid_to_image
-from bopsurg.models.pose.targets import (
-    XyzNormaliser,
-    farthest_point_sampling,
-    xyz_from_depth,
-    xyz_to_region,
-)
-
-__all__ = [
-    "XyzNormaliser",
-    "allo_to_ego",
-    "crop",
-    "crop_theta",
-    "dzi_boxes",
-    "ego_to_allo",
-    "farthest_point_sampling",
-    "matrix_from_rot6d",
-    "ray_rotation",
-    "roi_coord_2d",
-    "roi_grid_to_image",
-    "rot6d_from_matrix",
-    "site_decode",
-    "site_encode",
-    "xyz_from_depth",
-    "xyz_to_region",
-]
 
 # t̂_z below −1 + this: the object sits behind the camera on the optical axis (never in BOP
 # data); R_c is then any 180° turn, and the closed form below would divide by zero.
