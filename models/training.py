@@ -39,7 +39,7 @@ from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError, CheckpointError
 from bopsurg.models.checkpoint import load_tensors, save_checkpoint
 from bopsurg.models.data import split_scenes
-from bopsurg.models.detector.ema import ModelEMA
+from bopsurg.models.ema import ModelEMA
 
 log = logging.getLogger(__name__)
 

@@ -25,7 +25,6 @@ from bopsurg.models.detector.augment import (  # noqa: E402
     rgb_to_hsv,
 )
 from bopsurg.models.detector.boxes import batched_nms, xyxy_to_cxcywh  # noqa: E402
-from bopsurg.models.detector.ema import ModelEMA  # noqa: E402
 from bopsurg.models.detector.letterbox import (  # noqa: E402
     PAD_GREY,
     PAD_VALUE,
@@ -33,6 +32,7 @@ from bopsurg.models.detector.letterbox import (  # noqa: E402
     input_to_image_boxes,
     letterbox,
 )
+from bopsurg.models.ema import ModelEMA  # noqa: E402
 
 TEST_HW = (64, 96)
 
