@@ -1,10 +1,11 @@
 """Train the YOLOX-like detector on the ``bbox_visib`` boxes of a BOP split.
 
-Recipe (the YOLOX recipe scaled to a CPU and a few thousand synthetic frames, see
-``notes/estimators.md`` 2.6 and 2.8): AdamW, quadratic warm-up then cosine to 5 %, weight
-decay on conv weights only, EMA of the weights (the EMA is what is validated and exported),
-HSV + horizontal flip + random scale/translate augmentation, the L1 box term switched on for
-the last 15 % of the epochs (as YOLOX does for its last no-augmentation epochs).
+Recipe (the YOLOX recipe scaled to a CPU and a few thousand synthetic frames): AdamW,
+quadratic warm-up then cosine to 5 %, weight decay on conv weights only, EMA of the weights
+(the EMA is what is validated and exported), HSV + horizontal flip + random scale/translate
+augmentation, the L1 box term switched on for the last 15 % of the epochs (as YOLOX does for
+its last no-augmentation epochs). The epoch loop is :func:`~bopsurg.models.training.fit`;
+this module brings the data, the augmented training step and the validation.
 """
 
 from __future__ import annotations

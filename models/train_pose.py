@@ -4,9 +4,9 @@ Per batch, from the context crops of :class:`~bopsurg.models.data.PoseSet`: dyna
 (DZI) around the visible box, ROI image (bilinear, ``roi_in``), visible mask and object
 coordinates (nearest, ``roi_out``), the soft mask (covered fraction per cell), normalised
 coordinates and FPS surface regions computed on the fly, colour jitter, SITE and allocentric
-targets; the GDR-Net losses of :func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe
-(``notes/estimators.md`` 1.8/1.11): AdamW, quadratic warm-up, flat then cosine from 72 % of
-the steps, EMA of the weights.
+targets; the GDR-Net losses of :func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe (as
+GDR-Net's): AdamW, quadratic warm-up, flat then cosine from 72 % of the steps, EMA of the
+weights, run by the shared epoch loop :func:`~bopsurg.models.training.fit`.
 Validation decodes poses with test-time crops around the GT visible boxes and reports the
 median RE / TE / MSSD with bopsurg's own metrics.
 """
