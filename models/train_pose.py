@@ -29,11 +29,7 @@ from bopsurg.models.data import PoseSet, load_pose_set
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
-from bopsurg.models.pose.encodings import (
-    ego_to_allo,
-    rot6d_from_matrix,
-    site_encode,
-)
+from bopsurg.models.pose.encodings import SiteRoi, ego_to_allo, rot6d_from_matrix, site_encode
 from bopsurg.models.pose.losses import gdr_losses
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
@@ -170,7 +166,7 @@ def roi_batch(
         "region": region,
         "R": R,
         "t": t,
-        "site": site_encode(t, K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm),
+        "site": site_encode(t, SiteRoi(K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm)),
         "rot6d_allo": rot6d_from_matrix(ego_to_allo(R, t)),
         "K": K,
         "centre": centre,

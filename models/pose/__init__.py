@@ -12,6 +12,7 @@ from __future__ import annotations
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pnp_ransac_from_output, pose_from_output
 from bopsurg.models.pose.encodings import (
+    SiteRoi,
     allo_to_ego,
     ego_to_allo,
     matrix_from_rot6d,
@@ -33,6 +34,7 @@ from bopsurg.models.pose.targets import (
 __all__ = [
     "GdrPoseNet",
     "PoseConfig",
+    "SiteRoi",
     "XyzNormaliser",
     "allo_to_ego",
     "crop",

@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from bopsurg.models.pose.config import PoseConfig
-from bopsurg.models.pose.encodings import allo_to_ego, matrix_from_rot6d, site_decode
+from bopsurg.models.pose.encodings import SiteRoi, allo_to_ego, matrix_from_rot6d, site_decode
 
 
 def point_matching(
@@ -132,15 +132,10 @@ def _pose_losses(
     valid = target["mask_visib"].flatten(1).sum(dim=1) > 0  # (B,)
     n_valid = valid.sum().clamp(min=1)
     site = out["site"][valid]
-    t_pred = site_decode(
-        site,
-        target["K"][valid],
-        target["centre"][valid],
-        target["wh"][valid],
-        target["side"][valid],
-        cfg.roi_out,
-        cfg.z_unit_mm,
+    roi = SiteRoi(
+        *(target[k][valid] for k in ("K", "centre", "wh", "side")), cfg.roi_out, cfg.z_unit_mm
     )
+    t_pred = site_decode(site, roi)
     R_pred = allo_to_ego(matrix_from_rot6d(out["rot6d"][valid]), t_pred)
     pts = model_points.to(R_pred)
     extent = (pts.max(dim=0).values - pts.min(dim=0).values).max()
