@@ -30,11 +30,10 @@ from tqdm import tqdm
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_depth, load_mask, load_rgb
 from bopsurg.errors import DatasetError
+from bopsurg.models.detector.letterbox import letterbox
 
 log = logging.getLogger(__name__)
 
-#: Letterbox padding grey, as YOLOX (114 of 255).
-PAD_VALUE = 114
 #: Context crop side relative to the visible box's longer side: covers the largest DZI crop
 #: (1.5 pad x 1.25 scale) with its largest centre shift (0.25 of the box).
 CONTEXT_RATIO = 2.5
@@ -117,20 +116,6 @@ def _map(fn, items, desc: str, progress: bool, workers: int = 2) -> list:
 
 
 # --------------------------------------------------------------------------- detector
-
-
-def letterbox(rgb: np.ndarray, input_hw: tuple[int, int]) -> tuple[np.ndarray, float]:
-    """Resize ``rgb`` (H, W, 3) to fit ``input_hw`` keeping its aspect, top-left aligned,
-    padded with :data:`PAD_VALUE`. Returns the (h, w, 3) image and the scale (input px per
-    image px)."""
-    src_h, src_w = rgb.shape[:2]
-    h, w = input_hw
-    scale = min(h / src_h, w / src_w)
-    nh, nw = round(src_h * scale), round(src_w * scale)
-    out = np.full((h, w, 3), PAD_VALUE, np.uint8)
-    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
-    out[:nh, :nw] = cv2.resize(rgb, (nw, nh), interpolation=interp)
-    return out, scale
 
 
 def bbox_to_xyxy(bbox: Sequence[float], scale: float = 1.0) -> list[float]:

@@ -21,8 +21,8 @@ import torch
 from bopsurg.errors import BopsurgError
 from bopsurg.estimation import Detections, PosePredictions
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
-from bopsurg.models.data import letterbox
 from bopsurg.models.detector import DetectorConfig, YoloxDetector
+from bopsurg.models.detector.letterbox import letterbox
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pnp_ransac_from_output, pose_from_output
 from bopsurg.models.pose.network import GdrPoseNet

@@ -1,10 +1,11 @@
 """Train the YOLOX-like detector on the ``bbox_visib`` boxes of a BOP split.
 
-Recipe (the YOLOX recipe scaled to a CPU and a few thousand synthetic frames, see
-``notes/estimators.md`` 2.6 and 2.8): AdamW, quadratic warm-up then cosine to 5 %, weight
-decay on conv weights only, EMA of the weights (the EMA is what is validated and exported),
-HSV + horizontal flip + random scale/translate augmentation, the L1 box term switched on for
-the last 15 % of the epochs (as YOLOX does for its last no-augmentation epochs).
+Recipe (the YOLOX recipe scaled to a CPU and a few thousand synthetic frames): AdamW,
+quadratic warm-up then cosine to 5 %, weight decay on conv weights only, EMA of the weights
+(the EMA is what is validated and exported), HSV + horizontal flip + random scale/translate
+augmentation, the L1 box term switched on for the last 15 % of the epochs (as YOLOX does for
+its last no-augmentation epochs). The epoch loop is :func:`~bopsurg.models.training.fit`;
+this module brings the data, the augmented training step and the validation.
 """
 
 from __future__ import annotations
@@ -14,30 +15,16 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError
-from bopsurg.models.checkpoint import save_checkpoint
-from bopsurg.models.data import DetectionSet, load_detection_set, split_scenes
+from bopsurg.models import training
+from bopsurg.models.data import DetectionSet, load_detection_set
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
 from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
-from bopsurg.models.detector.ema import ModelEMA
-from bopsurg.models.training import (
-    RunFolder,
-    RunSettings,
-    Timer,
-    batches,
-    epoch_generator,
-    flat_cosine_lr,
-    format_record,
-    param_groups,
-    provenance,
-    resolve_device,
-)
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +45,16 @@ class DetectorRecipe:
     min_visib: float = 0.1
     val_every: int = 5
 
+    def schedule(self) -> training.Schedule:
+        """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
+        return training.Schedule(
+            self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
+            0.0, self.val_every,
+        )  # fmt: skip
+
 
 @torch.no_grad()
-def validate(model: torch.nn.Module, data: DetectionSet, device: torch.device) -> dict[str, float]:
+def validate(model: YoloxDetector, data: DetectionSet, device: torch.device) -> dict[str, float]:
     """Top-1 box per GT instance: recall at IoU 0.5 and mean IoU; false positives = images
     without GT where the best score is >= 0.3."""
     if len(data) == 0:
@@ -121,25 +115,21 @@ def train_detector(
         obj_ids: Objects to detect, one class each; None = the dataset's first object.
     """
     recipe = recipe or DetectorRecipe()
-    dev = resolve_device(device)
-    ds = BopDataset(dataset, split)
-    val_ds = BopDataset(dataset, val_split) if val_split else None
-    train_ids, val_ids = split_scenes(ds, 10, val_ds)
+    dev = training.resolve_device(device)
+    splits = training.open_splits(dataset, split, val_split)
+    ds = splits.train
     classes = tuple(obj_ids) if obj_ids else tuple(ds.obj_ids[:1])
     unknown = sorted(set(classes) - set(ds.obj_ids))
     if unknown:
         raise BopsurgError(f"--obj-ids: {unknown} not among the dataset's objects {ds.obj_ids}")
     cfg = DetectorConfig.preset(preset, num_classes=len(classes))
-    settings = RunSettings(
+    settings = training.RunSettings(
         "detector", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
         {"val_split": val_split, "max_images": max_images, "classes": list(classes)},
     )  # fmt: skip
-    run = RunFolder(out, settings, restart=restart)
-    state = run.load_state()
-
-    torch.manual_seed(seed)
+    run, state = training.open_run(out, settings, restart=restart)
     train = load_detection_set(
-        ds, train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib, progress=progress
+        ds, splits.train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib, progress=progress
     )
     if max_images is not None:
         train = DetectionSet(
@@ -147,77 +137,36 @@ def train_detector(
             train.scales[:max_images], train.classes,
         )  # fmt: skip
     val = load_detection_set(
-        val_ds or ds, val_ds.scene_ids if val_ds else val_ids, cfg.input_hw, classes,
-        min_visib=recipe.min_visib, progress=progress,
+        splits.val, splits.val_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
+        progress=progress,
     )  # fmt: skip
     log.info("detector: %d train images, %d validation images", len(train), len(val))
-
     model = YoloxDetector(cfg).to(dev)
-    ema = ModelEMA(model, tau=500.0)
-    opt = torch.optim.AdamW(param_groups(model, recipe.weight_decay), lr=recipe.lr)
-    steps_per_epoch = max(1, len(train) // recipe.batch_size)
-    total = recipe.epochs * steps_per_epoch
-    warmup = int(recipe.warmup_epochs * steps_per_epoch)
-    start = 0
-    timer = Timer()
-    if state is not None:
-        model.load_state_dict(state["model"])
-        ema.load_state_dict(state["ema"])
-        opt.load_state_dict(state["optimizer"])
-        start = int(state["epoch"]) + 1
-        timer = Timer(float(state["seconds"]))
+    meta = {"classes": list(classes)}
+    export = training.Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
+    step = _step_fn(model, train, recipe, dev)
+    return training.fit(
+        model, run, state, recipe.schedule(), n_train=len(train), step=step,
+        validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev), export=export,
+        device=dev, progress=progress,
+    )  # fmt: skip
+
+
+def _step_fn(
+    model: YoloxDetector, train: DetectionSet, recipe: DetectorRecipe, dev: torch.device
+) -> training.StepFn:
+    """The detector's training step: augment a batch (HSV, flip, scale/translate), YOLOX
+    losses with the L1 box term from epoch ``l1_from`` on."""
     l1_from = math.ceil(recipe.epochs * (1 - recipe.l1_fraction))
 
-    export = Path(out) / "detector.pt"
-    for epoch in range(start, recipe.epochs):
-        gen = epoch_generator(seed, epoch)
-        model.train()
-        sums: dict[str, float] = {}
-        bar = tqdm(
-            batches(len(train), recipe.batch_size, gen), total=steps_per_epoch,
-            desc=f"detector {epoch + 1}/{recipe.epochs}", disable=not progress, leave=False,
-        )  # fmt: skip
-        for k, idx in enumerate(bar):
-            step = epoch * steps_per_epoch + k
-            for g in opt.param_groups:
-                g["lr"] = flat_cosine_lr(step, total, warmup, 0.0, recipe.lr)
-            images = train.images[idx].to(dev).float() / 255
-            targets = [train.targets[i].to(dev) for i in idx.tolist()]
-            images = hsv_jitter(images, gen)
-            images, targets = random_flip(images, targets, gen, p=recipe.flip)
-            images, targets = random_affine(
-                images, targets, gen, scale=recipe.scale, translate=recipe.translate
-            )
-            losses = model.loss(model(images), targets, use_l1=epoch >= l1_from)
-            opt.zero_grad(set_to_none=True)
-            losses["total"].backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            opt.step()
-            ema.update(model)
-            for name, v in losses.items():
-                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
-            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
-        record = {"epoch": epoch, "lr": opt.param_groups[0]["lr"]}
-        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
-        last = epoch == recipe.epochs - 1
-        if last or (epoch + 1) % recipe.val_every == 0:
-            record.update({f"val_{n}": v for n, v in validate(ema.ema, val, dev).items()})
-        record["seconds"] = round(timer.seconds, 1)
-        log.info("detector epoch %d: %s", epoch + 1, format_record(record))
-        save_checkpoint(
-            export, ema.ema.state_dict(), kind="detector", config=cfg.to_dict(),
-            meta={
-                "classes": list(classes), "epoch": epoch + 1,
-                "validation": {k: v for k, v in record.items() if k.startswith("val_")},
-                **provenance(settings, timer.seconds, dev),
-            },
-            half=True,
-        )  # fmt: skip
-        run.save_state(
-            {
-                "model": model.state_dict(), "ema": ema.state_dict(),
-                "optimizer": opt.state_dict(), "epoch": epoch, "seconds": timer.seconds,
-            }
-        )  # fmt: skip
-        run.append_log(record)
-    return export
+    def step(idx: torch.Tensor, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
+        images = train.images[idx].to(dev).float() / 255
+        targets = [train.targets[i].to(dev) for i in idx.tolist()]
+        images = hsv_jitter(images, gen)
+        images, targets = random_flip(images, targets, gen, p=recipe.flip)
+        images, targets = random_affine(
+            images, targets, gen, scale=recipe.scale, translate=recipe.translate
+        )
+        return model.loss(model(images), targets, use_l1=epoch >= l1_from)
+
+    return step

@@ -4,9 +4,9 @@ Per batch, from the context crops of :class:`~bopsurg.models.data.PoseSet`: dyna
 (DZI) around the visible box, ROI image (bilinear, ``roi_in``), visible mask and object
 coordinates (nearest, ``roi_out``), the soft mask (covered fraction per cell), normalised
 coordinates and FPS surface regions computed on the fly, colour jitter, SITE and allocentric
-targets; the GDR-Net losses of :func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe
-(``notes/estimators.md`` 1.8/1.11): AdamW, quadratic warm-up, flat then cosine from 72 % of
-the steps, EMA of the weights.
+targets; the GDR-Net losses of :func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe (as
+GDR-Net's): AdamW, quadratic warm-up, flat then cosine from 72 % of the steps, EMA of the
+weights, run by the shared epoch loop :func:`~bopsurg.models.training.fit`.
 Validation decodes poses with test-time crops around the GT visible boxes and reports the
 median RE / TE / MSSD with bopsurg's own metrics.
 """
@@ -20,38 +20,20 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.geometry import rotation_about_axis
-from bopsurg.models.checkpoint import save_checkpoint
-from bopsurg.models.data import PoseSet, load_pose_set, split_scenes
+from bopsurg.models import training
+from bopsurg.models.data import PoseSet, load_pose_set
 from bopsurg.models.detector.augment import hsv_jitter
-from bopsurg.models.detector.ema import ModelEMA
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
-from bopsurg.models.pose.encodings import (
-    ego_to_allo,
-    rot6d_from_matrix,
-    site_encode,
-)
+from bopsurg.models.pose.encodings import SiteRoi, ego_to_allo, rot6d_from_matrix, site_encode
 from bopsurg.models.pose.losses import gdr_losses
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser, farthest_point_sampling, xyz_to_region
-from bopsurg.models.training import (
-    RunFolder,
-    RunSettings,
-    Timer,
-    batches,
-    epoch_generator,
-    flat_cosine_lr,
-    format_record,
-    param_groups,
-    provenance,
-    resolve_device,
-)
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +55,13 @@ class PoseRecipe:
     hsv: tuple[float, float, float] = (0.015, 0.5, 0.4)
     val_every: int = 5
     symmetric: bool = False
+
+    def schedule(self) -> training.Schedule:
+        """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
+        return training.Schedule(
+            self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
+            self.anneal_from, self.val_every,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -177,7 +166,7 @@ def roi_batch(
         "region": region,
         "R": R,
         "t": t,
-        "site": site_encode(t, K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm),
+        "site": site_encode(t, SiteRoi(K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm)),
         "rot6d_allo": rot6d_from_matrix(ego_to_allo(R, t)),
         "K": K,
         "centre": centre,
@@ -254,93 +243,54 @@ def train_pose(
         max_instances: Use only the first N training instances (smoke tests).
     """
     recipe = recipe or PoseRecipe()
-    dev = resolve_device(device)
+    dev = training.resolve_device(device)
     cfg = PoseConfig.preset(preset)
     if recipe.symmetric:
         cfg = PoseConfig.from_dict({**cfg.to_dict(), "symmetric": True})
-    ds = BopDataset(dataset, split)
-    val_ds = BopDataset(dataset, val_split) if val_split else None
+    splits = training.open_splits(dataset, split, val_split)
+    ds = splits.train
     obj_id = ds.obj_ids[0] if obj_id is None else obj_id
-    train_ids, val_ids = split_scenes(ds, 10, val_ds)
-    settings = RunSettings(
+    settings = training.RunSettings(
         "pose", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
         {"val_split": val_split, "obj_id": obj_id, "max_instances": max_instances},
     )  # fmt: skip
-    run = RunFolder(out, settings, restart=restart)
-    state = run.load_state()
-
-    torch.manual_seed(seed)
+    run, state = training.open_run(out, settings, restart=restart)
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
-    train = load_pose_set(ds, train_ids, obj_id, min_visib=recipe.min_visib, progress=progress)
+    train = load_pose_set(
+        ds, splits.train_ids, obj_id, min_visib=recipe.min_visib, progress=progress
+    )
     if max_instances is not None:
         train = _head(train, max_instances)
-    val = load_pose_set(
-        val_ds or ds, val_ds.scene_ids if val_ds else val_ids, obj_id, min_visib=0.3,
-        progress=progress,
-    )  # fmt: skip
+    val = load_pose_set(splits.val, splits.val_ids, obj_id, min_visib=0.3, progress=progress)
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
 
     model = GdrPoseNet(cfg).to(dev)
-    ema = ModelEMA(model, tau=500.0)
-    opt = torch.optim.AdamW(param_groups(model, recipe.weight_decay), lr=recipe.lr)
-    steps_per_epoch = max(1, len(train) // recipe.batch_size)
-    total = recipe.epochs * steps_per_epoch
-    warmup = int(recipe.warmup_epochs * steps_per_epoch)
-    start, timer = 0, Timer()
-    if state is not None:
-        model.load_state_dict(state["model"])
-        ema.load_state_dict(state["ema"])
-        opt.load_state_dict(state["optimizer"])
-        start, timer = int(state["epoch"]) + 1, Timer(float(state["seconds"]))
+    export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
+    step = _step_fn(model, train, cfg, geo, recipe, dev)
+    return training.fit(
+        model, run, state, recipe.schedule(), n_train=len(train), step=step,
+        validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export, device=dev,
+        progress=progress,
+    )  # fmt: skip
+
+
+def _step_fn(
+    model: GdrPoseNet,
+    train: PoseSet,
+    cfg: PoseConfig,
+    geo: ObjectGeometry,
+    recipe: PoseRecipe,
+    dev: torch.device,
+) -> training.StepFn:
+    """The pose head's training step: jittered ROIs of a batch, the GDR-Net losses."""
     points = geo.points.to(dev)
     syms = None if geo.sym_rotations is None else geo.sym_rotations.to(dev)
 
-    export = Path(out) / "pose.pt"
-    for epoch in range(start, recipe.epochs):
-        gen = epoch_generator(seed, epoch)
-        model.train()
-        sums: dict[str, float] = {}
-        bar = tqdm(
-            batches(len(train), recipe.batch_size, gen), total=steps_per_epoch,
-            desc=f"pose {epoch + 1}/{recipe.epochs}", disable=not progress, leave=False,
-        )  # fmt: skip
-        for k, idx in enumerate(bar):
-            step = epoch * steps_per_epoch + k
-            for g in opt.param_groups:
-                g["lr"] = flat_cosine_lr(step, total, warmup, recipe.anneal_from, recipe.lr)
-            roi_img, coord2d, target = roi_batch(train, idx, cfg, geo, dev, gen, recipe.hsv)
-            losses = gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
-            opt.zero_grad(set_to_none=True)
-            losses["total"].backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            opt.step()
-            ema.update(model)
-            for name, v in losses.items():
-                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
-            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
-        record: dict[str, Any] = {"epoch": epoch, "lr": opt.param_groups[0]["lr"]}
-        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
-        if epoch == recipe.epochs - 1 or (epoch + 1) % recipe.val_every == 0:
-            record.update({f"val_{n}": v for n, v in validate(ema.ema, val, cfg, geo, dev).items()})
-        record["seconds"] = round(timer.seconds, 1)
-        log.info("pose epoch %d: %s", epoch + 1, format_record(record))
-        save_checkpoint(
-            export, ema.ema.state_dict(), kind="pose", config=cfg.to_dict(),
-            meta={
-                **geo.to_meta(), "epoch": epoch + 1,
-                "validation": {k: v for k, v in record.items() if k.startswith("val_")},
-                **provenance(settings, timer.seconds, dev),
-            },
-            half=True,
-        )  # fmt: skip
-        run.save_state(
-            {
-                "model": model.state_dict(), "ema": ema.state_dict(),
-                "optimizer": opt.state_dict(), "epoch": epoch, "seconds": timer.seconds,
-            }
-        )  # fmt: skip
-        run.append_log(record)
-    return export
+    def step(idx: torch.Tensor, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
+        roi_img, coord2d, target = roi_batch(train, idx, cfg, geo, dev, gen, recipe.hsv)
+        return gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
+
+    return step
 
 
 def _head(data: PoseSet, n: int) -> PoseSet:

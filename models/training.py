@@ -1,4 +1,11 @@
-"""What the detector and pose trainers share: devices, seeds, schedules, resumable state, logs.
+"""The one epoch loop of the detector and pose trainers, and what it needs: devices, seeds,
+schedules, resumable state, logs.
+
+A trainer builds its data and network, then hands :func:`fit` a *step function* (one batch of
+indices → named scalar losses with a ``"total"``) and a *validation function* (EMA network →
+named metrics). :func:`fit` owns everything else: the AdamW optimiser with decay on weights
+only, the warm-up + flat + cosine schedule, the EMA, gradient clipping, resuming, the
+validation cadence, the exported checkpoint, the training state and the log.
 
 A training run lives in one folder::
 
@@ -18,17 +25,21 @@ import logging
 import math
 import platform
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
+from tqdm import tqdm
 
 from bopsurg.atomic import atomic_path, write_text
+from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError, CheckpointError
-from bopsurg.models.checkpoint import load_tensors
+from bopsurg.models.checkpoint import load_tensors, save_checkpoint
+from bopsurg.models.data import split_scenes
+from bopsurg.models.ema import ModelEMA
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +85,8 @@ def flat_cosine_lr(step: int, total: int, warmup: int, anneal_from: float, base:
 
 def param_groups(model: nn.Module, weight_decay: float) -> list[dict[str, Any]]:
     """Weight decay on conv/linear weights only (not norms or biases), as YOLOX and GDRNPP."""
-    decay, no_decay = [], []
+    decay: list[nn.Parameter] = []
+    no_decay: list[nn.Parameter] = []
     for name, p in model.named_parameters():
         if not p.requires_grad:
             continue
@@ -170,6 +182,49 @@ def _resumable(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+@dataclass(frozen=True)
+class Splits:
+    """Where a run's samples come from.
+
+    Attributes:
+        train: The training split.
+        train_ids: Its scenes that train.
+        val: The validation split (``train`` when scenes of it are held out).
+        val_ids: The validation scenes of ``val``.
+    """
+
+    train: BopDataset
+    train_ids: list[int]
+    val: BopDataset
+    val_ids: list[int]
+
+
+def open_splits(dataset: str | Path, split: str, val_split: str | None) -> Splits:
+    """``split`` of ``dataset`` for training; validation on all of ``val_split``, or, when
+    None, on every 10th scene of ``split`` held out (whole scenes: no shared trajectories)."""
+    ds = BopDataset(dataset, split)
+    val_ds = BopDataset(dataset, val_split) if val_split else None
+    train_ids, val_ids = split_scenes(ds, 10, val_ds)
+    if val_ds is None:
+        return Splits(ds, train_ids, ds, val_ids)
+    return Splits(ds, train_ids, val_ds, val_ds.scene_ids)
+
+
+def open_run(
+    out: str | Path, settings: RunSettings, *, restart: bool
+) -> tuple[RunFolder, dict[str, Any] | None]:
+    """The run folder ``out`` and its saved state (None: a fresh run), then torch's global
+    generator seeded with ``settings.seed`` for the network's initialisation.
+
+    Raises:
+        BopsurgError: ``out`` holds a run with other settings.
+    """
+    run = RunFolder(out, settings, restart=restart)
+    state = run.load_state()
+    torch.manual_seed(settings.seed)
+    return run, state
+
+
 def provenance(settings: RunSettings, seconds: float, device: torch.device) -> dict[str, Any]:
     """What a checkpoint records about how it was made."""
     return {
@@ -198,3 +253,169 @@ class Timer:
     @property
     def seconds(self) -> float:
         return time.perf_counter() - self.start
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """The hyper-parameters the epoch loop reads from a trainer's recipe.
+
+    Attributes:
+        epochs: Epochs of the whole run (a resume may raise it).
+        batch_size: Samples per step; an epoch is ``n_train // batch_size`` steps.
+        lr: Peak learning rate.
+        weight_decay: AdamW decay of conv/linear weights.
+        warmup_epochs: Quadratic warm-up length, epochs.
+        anneal_from: Start of the cosine, a fraction of all steps (0: right after warm-up).
+        val_every: Validation cadence, epochs (the last epoch is always validated).
+    """
+
+    epochs: int
+    batch_size: int
+    lr: float
+    weight_decay: float
+    warmup_epochs: float
+    anneal_from: float
+    val_every: int
+
+
+#: One training step's losses: ``(batch indices, epoch generator, epoch) → {name: scalar}``
+#: with a ``"total"`` that is back-propagated; every entry is averaged into the log.
+StepFn = Callable[[torch.Tensor, torch.Generator, int], dict[str, torch.Tensor]]
+#: Validation of the EMA network: ``network → {name: value}`` (logged with a ``val_`` prefix).
+ValidateFn = Callable[[nn.Module], dict[str, float]]
+
+
+@dataclass(frozen=True)
+class Export:
+    """The checkpoint :func:`fit` writes after every epoch (EMA weights, float16).
+
+    Attributes:
+        path: The ``.pt`` file (its ``.json`` twin is written beside it).
+        kind: ``"detector"`` or ``"pose"``, checked on load.
+        config: The network's config dict.
+        meta: What the estimator needs beside the weights (classes, object geometry ...);
+            ``fit`` adds the epoch, the validation and the provenance.
+    """
+
+    path: Path
+    kind: str
+    config: dict[str, Any]
+    meta: dict[str, Any]
+
+
+@dataclass
+class _Progress:
+    """Optimiser, EMA and the first epoch to run: fresh, or restored from a saved state."""
+
+    opt: torch.optim.Optimizer
+    ema: ModelEMA
+    start: int
+    timer: Timer
+
+
+def fit(
+    model: nn.Module,
+    run: RunFolder,
+    state: dict[str, Any] | None,
+    schedule: Schedule,
+    *,
+    n_train: int,
+    step: StepFn,
+    validate: ValidateFn,
+    export: Export,
+    device: torch.device,
+    progress: bool = True,
+) -> Path:
+    """Train ``model`` for the remaining epochs of ``schedule``; returns ``export.path``.
+
+    Per step: the learning rate of :func:`flat_cosine_lr`, ``step``'s losses, backward,
+    gradient norm clipped to 10, AdamW, EMA update. Per epoch: validation of the EMA network
+    after every ``val_every``-th and the last epoch, then the export, the training state
+    and the log line, so a run killed at any point resumes after its last finished epoch.
+
+    Args:
+        model: The network, on ``device``, freshly initialised (seeded by the caller).
+        run: The run folder.
+        state: :meth:`RunFolder.load_state`'s result (None: a fresh run).
+        schedule: Epochs, batch size, learning-rate schedule, validation cadence.
+        n_train: Training samples; each epoch is ``n_train // batch_size`` steps.
+        step: Losses of one batch.
+        validate: Metrics of the EMA network.
+        export: Where and how the exported checkpoint is written.
+        device: Where the model lives (recorded in the provenance).
+        progress: Show a progress bar per epoch.
+    """
+    steps_per_epoch = max(1, n_train // schedule.batch_size)
+    total = schedule.epochs * steps_per_epoch
+    warmup = int(schedule.warmup_epochs * steps_per_epoch)
+    p = _start(model, state, schedule)
+    for epoch in range(p.start, schedule.epochs):
+        gen = epoch_generator(run.settings.seed, epoch)
+        model.train()
+        sums: dict[str, float] = {}
+        bar = tqdm(
+            batches(n_train, schedule.batch_size, gen), total=steps_per_epoch,
+            desc=f"{export.kind} {epoch + 1}/{schedule.epochs}", disable=not progress, leave=False,
+        )  # fmt: skip
+        for k, idx in enumerate(bar):
+            done = epoch * steps_per_epoch + k  # steps before this one
+            lr = flat_cosine_lr(done, total, warmup, schedule.anneal_from, schedule.lr)
+            for g in p.opt.param_groups:
+                g["lr"] = lr
+            losses = step(idx, gen, epoch)
+            p.opt.zero_grad(set_to_none=True)
+            losses["total"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            p.opt.step()
+            p.ema.update(model)
+            for name, v in losses.items():
+                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
+            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
+        record: dict[str, Any] = {"epoch": epoch, "lr": p.opt.param_groups[0]["lr"]}
+        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
+        if epoch == schedule.epochs - 1 or (epoch + 1) % schedule.val_every == 0:
+            record.update({f"val_{n}": v for n, v in validate(p.ema.ema).items()})
+        record["seconds"] = round(p.timer.seconds, 1)
+        log.info("%s epoch %d: %s", export.kind, epoch + 1, format_record(record))
+        _end_epoch(model, run, p, export, record, device)
+    return export.path
+
+
+def _start(model: nn.Module, state: dict[str, Any] | None, schedule: Schedule) -> _Progress:
+    """Optimiser and EMA of ``model``, restored from ``state`` when resuming."""
+    ema = ModelEMA(model, tau=500.0)
+    opt = torch.optim.AdamW(param_groups(model, schedule.weight_decay), lr=schedule.lr)
+    if state is None:
+        return _Progress(opt, ema, 0, Timer())
+    model.load_state_dict(state["model"])
+    ema.load_state_dict(state["ema"])
+    opt.load_state_dict(state["optimizer"])
+    return _Progress(opt, ema, int(state["epoch"]) + 1, Timer(float(state["seconds"])))
+
+
+def _end_epoch(
+    model: nn.Module,
+    run: RunFolder,
+    p: _Progress,
+    export: Export,
+    record: dict[str, Any],
+    device: torch.device,
+) -> None:
+    """Export the EMA weights, then save the training state and the log line of the epoch."""
+    epoch = record["epoch"]
+    save_checkpoint(
+        export.path, p.ema.ema.state_dict(), kind=export.kind, config=export.config,
+        meta={
+            **export.meta, "epoch": epoch + 1,
+            "validation": {k: v for k, v in record.items() if k.startswith("val_")},
+            **provenance(run.settings, p.timer.seconds, device),
+        },
+        half=True,
+    )  # fmt: skip
+    run.save_state(
+        {
+            "model": model.state_dict(), "ema": p.ema.state_dict(),
+            "optimizer": p.opt.state_dict(), "epoch": epoch, "seconds": p.timer.seconds,
+        }
+    )  # fmt: skip
+    run.append_log(record)

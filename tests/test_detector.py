@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -23,15 +24,15 @@ from bopsurg.models.detector.augment import (  # noqa: E402
     random_flip,
     rgb_to_hsv,
 )
-from bopsurg.models.detector.boxes import (  # noqa: E402
+from bopsurg.models.detector.boxes import batched_nms, xyxy_to_cxcywh  # noqa: E402
+from bopsurg.models.detector.letterbox import (  # noqa: E402
+    PAD_GREY,
     PAD_VALUE,
-    batched_nms,
     image_to_input_boxes,
     input_to_image_boxes,
-    letterbox_image,
-    xyxy_to_cxcywh,
+    letterbox,
 )
-from bopsurg.models.detector.ema import ModelEMA  # noqa: E402
+from bopsurg.models.ema import ModelEMA  # noqa: E402
 
 TEST_HW = (64, 96)
 
@@ -176,11 +177,13 @@ def test_letterbox_params_and_box_round_trip(src, expected):
     boxes = torch.tensor([[10.0, 20, 200, 300], [0, 0, src[1], src[0]]])
     back = input_to_image_boxes(image_to_input_boxes(boxes, scale), scale, src)
     assert torch.allclose(back, boxes, atol=1e-4)
-    image = torch.rand(3, *src)
-    boxed, s = letterbox_image(image, (256, 320))
-    assert boxed.shape == (3, 256, 320)
+    image = np.random.default_rng(0).integers(0, 255, (*src, 3), dtype=np.uint8)
+    boxed, s = letterbox(image, (256, 320))
+    assert boxed.shape == (256, 320, 3)
     assert s == scale
-    assert torch.all(boxed[:, 256 - pad_y :, :] == PAD_VALUE)
+    assert np.all(boxed[256 - pad_y :] == PAD_GREY)
+    assert np.all(boxed[:, 320 - pad_x :] == PAD_GREY)
+    assert np.any(boxed[: 256 - pad_y, : 320 - pad_x] != PAD_GREY)  # the image fills the rest
 
 
 # --------------------------------------------------------------------------------- SimOTA

@@ -16,6 +16,7 @@ import torch.nn.functional as F  # noqa: E402
 from bopsurg.models.pose import (  # noqa: E402
     GdrPoseNet,
     PoseConfig,
+    SiteRoi,
     XyzNormaliser,
     allo_to_ego,
     crop,
@@ -134,9 +135,10 @@ def test_site_round_trip():
     centre = 100.0 + 300.0 * torch.rand(n, 2, generator=g, dtype=D64)
     wh = 20.0 + 80.0 * torch.rand(n, 2, generator=g, dtype=D64)
     side = 1.5 * wh.max(dim=1).values
-    site = site_encode(t, K, centre, wh, side, 32, 1000.0)
+    roi = SiteRoi(K, centre, wh, side, 32, 1000.0)
+    site = site_encode(t, roi)
     assert torch.allclose(site[:, 2], t[:, 2] * side / 32 / 1000.0)
-    assert torch.allclose(site_decode(site, K, centre, wh, side, 32, 1000.0), t, atol=1e-10)
+    assert torch.allclose(site_decode(site, roi), t, atol=1e-10)
 
 
 def test_pose_from_output_recovers_gt_from_its_encodings():
@@ -148,7 +150,7 @@ def test_pose_from_output_recovers_gt_from_its_encodings():
     side = torch.full((n,), 60.0, dtype=D64)
     out = {
         "rot6d": rot6d_from_matrix(ego_to_allo(R, t)),
-        "site": site_encode(t, K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm),
+        "site": site_encode(t, SiteRoi(K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm)),
     }
     R_est, t_est = pose_from_output(out, K, centre, wh, side, cfg)
     assert torch.allclose(R_est, R, atol=1e-10)
@@ -322,7 +324,7 @@ def _synthetic_batch(cfg: PoseConfig, n: int, seed: int = 0) -> tuple:
         "region": region,
         "R": R,
         "t": t,
-        "site": site_encode(t, K, centre, wh, side, s, cfg.z_unit_mm),
+        "site": site_encode(t, SiteRoi(K, centre, wh, side, s, cfg.z_unit_mm)),
         "K": K,
         "centre": centre,
         "wh": wh,

@@ -14,8 +14,16 @@ Typical use::
 
 from __future__ import annotations
 
-from .boxes import box_iou, letterbox_params, nms
+from .boxes import box_iou, nms
 from .config import DetectorConfig
+from .letterbox import letterbox, letterbox_params
 from .model import YoloxDetector
 
-__all__ = ["DetectorConfig", "YoloxDetector", "box_iou", "letterbox_params", "nms"]
+__all__ = [
+    "DetectorConfig",
+    "YoloxDetector",
+    "box_iou",
+    "letterbox",
+    "letterbox_params",
+    "nms",
+]

@@ -12,7 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .boxes import PAD_VALUE, box_area
+from .boxes import box_area
+from .letterbox import PAD_VALUE
 
 #: A transformed box is dropped when narrower or lower than this many pixels...
 MIN_BOX_SIDE = 2.0

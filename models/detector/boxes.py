@@ -1,23 +1,14 @@
-"""Box geometry: format conversions, IoU, NMS and the letterbox mapping.
+"""Box geometry: format conversions, IoU and NMS (the letterbox is in :mod:`.letterbox`).
 
 Coordinates are continuous pixels: an image of width W spans x in [0, W] and pixel i covers
 [i, i + 1]. ``xyxy`` boxes are (x1, y1, x2, y2); ``cxcywh`` boxes are (cx, cy, w, h).
-
-Letterbox: an image of (src_h, src_w) is resized by ``scale = min(dst_h/src_h, dst_w/src_w)``
-(aspect ratio kept) and placed at the **top-left** of the (dst_h, dst_w) network input; the
-rest (right and bottom) is filled with :data:`PAD_VALUE` = 114/255 (YOLOX's grey). Because the
-image is not centred, mapping boxes between image and input pixels is a pure scale.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
-
-#: Fill value of letterbox padding and of augmentation borders (RGB in [0, 1]).
-PAD_VALUE = 114.0 / 255.0
 
 
 def cxcywh_to_xyxy(b: Tensor) -> Tensor:
@@ -105,54 +96,3 @@ def batched_nms(boxes: Tensor, scores: Tensor, classes: Tensor, iou_thr: float) 
         return torch.zeros(0, dtype=torch.long, device=boxes.device)
     span = boxes.max() - boxes.min() + 1
     return nms(boxes + (classes.to(boxes.dtype) * span)[:, None], scores, iou_thr)
-
-
-def letterbox_params(src_hw: tuple[int, int], dst_hw: tuple[int, int]) -> tuple[float, int, int]:
-    """Letterbox an image of ``src_hw`` = (H, W) into a ``dst_hw`` network input.
-
-    Returns:
-        (scale, pad_x, pad_y): the resize factor, and the padding in input pixels added on the
-        right (pad_x) and at the bottom (pad_y); the image sits at the top-left, so an image
-        point (x, y) lands at input (x·scale, y·scale). The resized image is
-        (round(H·scale), round(W·scale)) pixels.
-    """
-    (sh, sw), (dh, dw) = src_hw, dst_hw
-    scale = min(dh / sh, dw / sw)
-    return scale, dw - round(sw * scale), dh - round(sh * scale)
-
-
-def image_to_input_boxes(boxes: Tensor, scale: float) -> Tensor:
-    """Boxes (..., 4) xyxy in image pixels -> letterboxed input pixels."""
-    return boxes * scale
-
-
-def input_to_image_boxes(
-    boxes: Tensor, scale: float, src_hw: tuple[int, int] | None = None
-) -> Tensor:
-    """Boxes (..., 4) xyxy in input pixels -> image pixels, clipped to the image if ``src_hw``."""
-    out = boxes / scale
-    if src_hw is not None:
-        h, w = src_hw
-        out = torch.minimum(out.clamp_min(0), out.new_tensor([w, h, w, h]))
-    return out
-
-
-def letterbox_image(image: Tensor, dst_hw: tuple[int, int]) -> tuple[Tensor, float]:
-    """Letterbox a float image.
-
-    Args:
-        image: (3, H, W) or (B, 3, H, W) float RGB in [0, 1].
-        dst_hw: network input (H, W) in pixels.
-
-    Returns:
-        (letterboxed image (…, 3, dst_h, dst_w), scale); padding is :data:`PAD_VALUE`.
-    """
-    batched = image.dim() == 4
-    x = image if batched else image[None]
-    scale, pad_x, pad_y = letterbox_params(tuple(x.shape[-2:]), dst_hw)
-    new_hw = (dst_hw[0] - pad_y, dst_hw[1] - pad_x)
-    if new_hw != tuple(x.shape[-2:]):
-        # antialias avoids aliasing when shrinking (a thin needle must not break into dashes)
-        x = F.interpolate(x, size=new_hw, mode="bilinear", align_corners=False, antialias=True)
-    x = F.pad(x, (0, pad_x, 0, pad_y), value=PAD_VALUE)
-    return (x if batched else x[0]), scale

@@ -1,7 +1,7 @@
 """GDR-Net-like 6D pose head in plain PyTorch (no torchvision).
 
 Modules, one concept each: :mod:`.config` (sizes and weights), :mod:`.encodings` (rot6d,
-allocentric ↔ egocentric, SITE; re-exports the two below), :mod:`.roi` (DZI boxes, crops, 2D
+allocentric ↔ egocentric, SITE), :mod:`.roi` (DZI boxes, crops, 2D
 coordinates), :mod:`.targets` (xyz maps, normalisation, regions), :mod:`.network`
 (:class:`GdrPoseNet`), :mod:`.losses` (:func:`gdr_losses`) and :mod:`.decode` (poses from
 outputs). Units follow BOP: mm, px, ``x_cam = R x_model + t``.
@@ -12,6 +12,7 @@ from __future__ import annotations
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pnp_ransac_from_output, pose_from_output
 from bopsurg.models.pose.encodings import (
+    SiteRoi,
     allo_to_ego,
     ego_to_allo,
     matrix_from_rot6d,
@@ -33,6 +34,7 @@ from bopsurg.models.pose.targets import (
 __all__ = [
     "GdrPoseNet",
     "PoseConfig",
+    "SiteRoi",
     "XyzNormaliser",
     "allo_to_ego",
     "crop",

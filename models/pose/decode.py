@@ -13,7 +13,7 @@ import torch
 from numpy.typing import NDArray
 
 from bopsurg.models.pose.config import PoseConfig
-from bopsurg.models.pose.encodings import allo_to_ego, matrix_from_rot6d, site_decode
+from bopsurg.models.pose.encodings import SiteRoi, allo_to_ego, matrix_from_rot6d, site_decode
 from bopsurg.models.pose.network import mask_probability
 from bopsurg.models.pose.roi import roi_grid_to_image
 from bopsurg.models.pose.targets import XyzNormaliser
@@ -42,7 +42,7 @@ def pose_from_output(
     Returns:
         R_ego (B, 3, 3) and t (B, 3) mm.
     """
-    t = site_decode(out["site"], K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm)
+    t = site_decode(out["site"], SiteRoi(K, centre, wh, side, cfg.roi_out, cfg.z_unit_mm))
     return allo_to_ego(matrix_from_rot6d(out["rot6d"]), t), t
 
 

@@ -8,41 +8,16 @@ The network predicts the **allocentric** rotation (what a translation-invariant 
 see) as 6 numbers, and the translation as SITE ``(δx, δy, δz)`` relative to the crop; the
 functions here turn those into the egocentric ``R`` and ``t`` and back.
 
-The ROI and dense-target helpers live in :mod:`.roi` and :mod:`.targets` (one concept each) and
-are re-exported here, so ``encodings`` is the one import for all the pose-head geometry.
+The ROI and dense-target helpers live in :mod:`.roi` and :mod:`.targets`; the package
+(:mod:`bopsurg.models.pose`) is the one import for all of them.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 import torch.nn.functional as F
-
-from bopsurg.models.pose.roi import crop, crop_theta, dzi_boxes, roi_coord_2d, roi_grid_to_image
-from bopsurg.models.pose.targets import (
-    XyzNormaliser,
-    farthest_point_sampling,
-    xyz_from_depth,
-    xyz_to_region,
-)
-
-__all__ = [
-    "XyzNormaliser",
-    "allo_to_ego",
-    "crop",
-    "crop_theta",
-    "dzi_boxes",
-    "ego_to_allo",
-    "farthest_point_sampling",
-    "matrix_from_rot6d",
-    "ray_rotation",
-    "roi_coord_2d",
-    "roi_grid_to_image",
-    "rot6d_from_matrix",
-    "site_decode",
-    "site_encode",
-    "xyz_from_depth",
-    "xyz_to_region",
-]
 
 # t̂_z below −1 + this: the object sits behind the camera on the optical axis (never in BOP
 # data); R_c is then any 180° turn, and the closed form below would divide by zero.
@@ -140,15 +115,27 @@ def ego_to_allo(R_ego: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return ray_rotation(t).transpose(1, 2) @ R_ego
 
 
-def site_encode(
-    t: torch.Tensor,
-    K: torch.Tensor,
-    centre: torch.Tensor,
-    wh: torch.Tensor,
-    side: torch.Tensor,
-    roi_out: int,
-    z_unit_mm: float,
-) -> torch.Tensor:
+class SiteRoi(NamedTuple):
+    """The ROI a SITE translation is expressed in (batched over B).
+
+    Attributes:
+        K: (B, 3, 3) intrinsics, px.
+        centre: (B, 2) crop centre (c_x, c_y), px (the jittered one at train time).
+        wh: (B, 2) box width and height, px (un-jittered; the detection's at test time).
+        side: (B,) crop side, px.
+        roi_out: side of the output maps, px.
+        z_unit_mm: mm per unit of δz (1000: δz in metres).
+    """
+
+    K: torch.Tensor
+    centre: torch.Tensor
+    wh: torch.Tensor
+    side: torch.Tensor
+    roi_out: int
+    z_unit_mm: float
+
+
+def site_encode(t: torch.Tensor, roi: SiteRoi) -> torch.Tensor:
     """SITE target ``(δx, δy, δz)`` of a translation, relative to its ROI.
 
     With the projected object origin ``o = π(K t)`` and the zoom ``r = roi_out / side``:
@@ -156,45 +143,32 @@ def site_encode(
 
     Args:
         t: (B, 3) translations, mm.
-        K: (B, 3, 3) intrinsics, px.
-        centre: (B, 2) crop centre (c_x, c_y), px (the jittered one at train time).
-        wh: (B, 2) box width and height, px (un-jittered).
-        side: (B,) crop side, px.
-        roi_out: side of the output maps, px.
-        z_unit_mm: mm per unit of δz (1000: δz in metres).
+        roi: the ROIs (intrinsics, crop centre and side, box size, map side, δz unit).
 
     Returns:
         (B, 3) ``(δx, δy, δz)``, dimensionless except δz (z_unit_mm · px/px).
     """
-    p = (K @ t[:, :, None])[:, :, 0]
+    p = (roi.K @ t[:, :, None])[:, :, 0]
     o = p[:, :2] / p[:, 2:3]
-    r = roi_out / side
-    dz = t[:, 2] / r / z_unit_mm
-    return torch.cat([(o - centre) / wh, dz[:, None]], dim=1)
+    r = roi.roi_out / roi.side
+    dz = t[:, 2] / r / roi.z_unit_mm
+    return torch.cat([(o - roi.centre) / roi.wh, dz[:, None]], dim=1)
 
 
-def site_decode(
-    ratio: torch.Tensor,
-    K: torch.Tensor,
-    centre: torch.Tensor,
-    wh: torch.Tensor,
-    side: torch.Tensor,
-    roi_out: int,
-    z_unit_mm: float,
-) -> torch.Tensor:
+def site_decode(ratio: torch.Tensor, roi: SiteRoi) -> torch.Tensor:
     """Translation from SITE ``(δx, δy, δz)``: inverse of :func:`site_encode`.
 
     ``o = δ_xy · wh + c``, ``t_z = δz · z_unit_mm · r``, ``t = t_z · K⁻¹ [o_x, o_y, 1]``.
 
     Args:
         ratio: (B, 3) SITE values (network output "site").
-        K, centre, wh, side, roi_out, z_unit_mm: as in :func:`site_encode`.
+        roi: as in :func:`site_encode`.
 
     Returns:
         (B, 3) translations, mm.
     """
-    o = ratio[:, :2] * wh + centre
-    tz = ratio[:, 2] * z_unit_mm * (roi_out / side)
+    o = ratio[:, :2] * roi.wh + roi.centre
+    tz = ratio[:, 2] * roi.z_unit_mm * (roi.roi_out / roi.side)
     o_h = torch.cat([o, torch.ones_like(o[:, :1])], dim=1)
-    ray = torch.linalg.solve(K, o_h[:, :, None])[:, :, 0]  # K⁻¹ o, z component 1 for a pinhole
+    ray = torch.linalg.solve(roi.K, o_h[:, :, None])[:, :, 0]  # K⁻¹ o, z = 1 for a pinhole
     return ray / ray[:, 2:3] * tz[:, None]

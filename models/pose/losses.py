@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from bopsurg.models.pose.config import PoseConfig
-from bopsurg.models.pose.encodings import allo_to_ego, matrix_from_rot6d, site_decode
+from bopsurg.models.pose.encodings import SiteRoi, allo_to_ego, matrix_from_rot6d, site_decode
 
 
 def point_matching(
@@ -80,11 +80,31 @@ def gdr_losses(
     Returns:
         Scalar tensors ``mask, xyz, region, pm, centroid, z, total`` (pm in model extents).
     """
+    if cfg.symmetric and sym_rotations is None:
+        raise ValueError("cfg.symmetric is set but no sym_rotations were given")
+    losses = {
+        **_map_losses(out, target, cfg),
+        **_pose_losses(out, target, model_points, cfg, sym_rotations if cfg.symmetric else None),
+    }
+    weights = {
+        "mask": cfg.w_mask,
+        "xyz": cfg.w_xyz,
+        "region": cfg.w_region,
+        "pm": cfg.w_pm,
+        "centroid": cfg.w_centroid,
+        "z": cfg.w_z,
+    }
+    zero = torch.zeros_like(losses["mask"])
+    losses["total"] = sum((weights[k] * v for k, v in losses.items()), zero)
+    return losses
+
+
+def _map_losses(
+    out: dict[str, torch.Tensor], target: dict[str, torch.Tensor], cfg: PoseConfig
+) -> dict[str, torch.Tensor]:
+    """The dense terms: visible mask (all cells), coordinates and regions (object cells)."""
     m = target["mask_visib"]
     n_fg = m.sum().clamp(min=1)
-    valid = m.flatten(1).sum(dim=1) > 0  # (B,) samples that show the object
-    n_valid = valid.sum().clamp(min=1)
-
     if cfg.mask_loss == "bce":
         soft = target.get("mask_soft", m)
         loss_mask = F.binary_cross_entropy_with_logits(out["mask"], soft)
@@ -97,46 +117,32 @@ def gdr_losses(
 
     ce = F.cross_entropy(out["region"], target["region"], reduction="none")  # (B, s, s)
     loss_region = (ce * m[:, 0]).sum() / n_fg
+    return {"mask": loss_mask, "xyz": loss_xyz, "region": loss_region}
 
-    # pose terms on the valid samples only (an empty ROI may come with a degenerate box)
-    if cfg.symmetric and sym_rotations is None:
-        raise ValueError("cfg.symmetric is set but no sym_rotations were given")
+
+def _pose_losses(
+    out: dict[str, torch.Tensor],
+    target: dict[str, torch.Tensor],
+    model_points: torch.Tensor,
+    cfg: PoseConfig,
+    syms: torch.Tensor | None,
+) -> dict[str, torch.Tensor]:
+    """The pose terms, on the samples that show the object only (an empty ROI may come with a
+    degenerate box): point matching (closest symmetry with ``syms``), SITE centre and depth."""
+    valid = target["mask_visib"].flatten(1).sum(dim=1) > 0  # (B,)
+    n_valid = valid.sum().clamp(min=1)
     site = out["site"][valid]
-    t_pred = site_decode(
-        site,
-        target["K"][valid],
-        target["centre"][valid],
-        target["wh"][valid],
-        target["side"][valid],
-        cfg.roi_out,
-        cfg.z_unit_mm,
+    roi = SiteRoi(
+        *(target[k][valid] for k in ("K", "centre", "wh", "side")), cfg.roi_out, cfg.z_unit_mm
     )
+    t_pred = site_decode(site, roi)
     R_pred = allo_to_ego(matrix_from_rot6d(out["rot6d"][valid]), t_pred)
     pts = model_points.to(R_pred)
     extent = (pts.max(dim=0).values - pts.min(dim=0).values).max()
-    syms = sym_rotations if cfg.symmetric else None
     pm = point_matching(R_pred, target["R"][valid], pts, syms)
     loss_pm = pm.sum() / extent / n_valid
 
     d_site = (site - target["site"][valid]).abs()
     loss_centroid = d_site[:, :2].mean(dim=1).sum() / n_valid
     loss_z = d_site[:, 2].sum() / n_valid
-
-    losses = {
-        "mask": loss_mask,
-        "xyz": loss_xyz,
-        "region": loss_region,
-        "pm": loss_pm,
-        "centroid": loss_centroid,
-        "z": loss_z,
-    }
-    weights = {
-        "mask": cfg.w_mask,
-        "xyz": cfg.w_xyz,
-        "region": cfg.w_region,
-        "pm": cfg.w_pm,
-        "centroid": cfg.w_centroid,
-        "z": cfg.w_z,
-    }
-    losses["total"] = sum((weights[k] * v for k, v in losses.items()), torch.zeros_like(loss_mask))
-    return losses
+    return {"pm": loss_pm, "centroid": loss_centroid, "z": loss_z}

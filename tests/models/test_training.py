@@ -1,0 +1,80 @@
+"""The shared epoch loop (``models/training.fit``) on a toy regression: its contract, not a model.
+
+A linear layer learns y = 2x from 12 samples; the step and validation functions are the only
+model-specific parts, as in the detector and pose trainers.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from bopsurg.models import training  # noqa: E402
+from bopsurg.models.checkpoint import load_tensors  # noqa: E402
+
+X = torch.linspace(-1, 1, 12)[:, None]
+Y = 2 * X
+
+
+class Killed(Exception):
+    """Stands for a run killed in the middle of an epoch."""
+
+
+def _run(out, epochs, *, val_every=2, kill_in=None):
+    schedule = training.Schedule(epochs, 4, 0.1, 0.0, 1.0, 0.5, val_every)
+    settings = training.RunSettings("toy", "none", "train", "test", 3, {"lr": 0.1})
+    run, state = training.open_run(out, settings, restart=False)
+    model = torch.nn.Linear(1, 1)
+    calls = []
+
+    def step(idx, gen, epoch):
+        if epoch == kill_in:
+            raise Killed
+        calls.append((epoch, idx.tolist()))
+        loss = (model(X[idx]) - Y[idx]).pow(2).mean()
+        return {"mse": loss.detach(), "total": loss}
+
+    def validate(net):
+        with torch.no_grad():
+            return {"mse": float((net(X) - Y).pow(2).mean())}
+
+    export = training.Export(out / "toy.pt", "toy", {"width": 1}, {"note": "x"})
+    path = training.fit(
+        model, run, state, schedule, n_train=len(X), step=step, validate=validate,
+        export=export, device=torch.device("cpu"), progress=False,
+    )  # fmt: skip
+    return path, calls
+
+
+def test_fit_steps_validates_on_cadence_and_exports(tmp_path):
+    path, calls = _run(tmp_path, 5)
+    assert [e for e, _ in calls] == [e for e in range(5) for _ in range(3)]  # 12 // 4 steps
+    for epoch in range(5):  # every sample once per epoch
+        assert sorted(i for e, idx in calls if e == epoch for i in idx) == list(range(12))
+    log = [json.loads(x) for x in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in log] == list(range(5))
+    assert [("val_mse" in r) for r in log] == [False, True, False, True, True]  # 2nd, 4th, last
+    assert log[-1]["loss_mse"] == pytest.approx(log[-1]["loss_total"])
+    assert log[-1]["loss_mse"] < log[0]["loss_mse"]
+    info = json.loads(path.with_suffix(".json").read_text())
+    assert info["kind"] == "toy"
+    assert info["meta"]["note"] == "x"
+    assert info["meta"]["epoch"] == 5
+    assert info["meta"]["validation"] == {"val_mse": log[-1]["val_mse"]}
+    assert load_tensors(path)["weight"].dtype == torch.float16  # EMA weights, half
+
+
+def test_a_resumed_fit_replays_the_same_batches_and_ends_with_the_same_weights(tmp_path):
+    full, calls_full = _run(tmp_path / "a", 4)
+    with pytest.raises(Killed):
+        _run(tmp_path / "b", 4, kill_in=2)
+    part, calls_rest = _run(tmp_path / "b", 4)
+    assert calls_rest == calls_full[6:]  # epochs 2 and 3 only, same shuffles
+    a, b = load_tensors(full), load_tensors(part)
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+    state = torch.load(tmp_path / "b" / "train_state.pt", weights_only=True)
+    assert state["epoch"] == 3
