@@ -18,6 +18,7 @@ from bopsurg.cli import (
     demo_cmd,
     eval_cmd,
     example_cmd,
+    import_cmd,
     predict_cmd,
     viz_cmd,
 )
@@ -55,7 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     verbosity.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in (demo_cmd, predict_cmd, eval_cmd, viz_cmd, check_cmd, annotate_cmd, example_cmd):
+    for module in (
+        demo_cmd, predict_cmd, eval_cmd, viz_cmd, check_cmd, annotate_cmd, import_cmd, example_cmd
+    ):  # fmt: skip
         module.register(sub)
     _register_plugin_commands(sub)
     return parser
