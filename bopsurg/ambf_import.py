@@ -58,12 +58,15 @@ from bopsurg.errors import DatasetError
 from bopsurg.geometry import is_rotation
 from bopsurg.needle import NeedleArc, fit_needle, needle_mesh
 from bopsurg.plugins import DepthRenderer
-from bopsurg.visibility import DEFAULT_DELTA_MM
 
 log = logging.getLogger(__name__)
 
 #: The needle's obj_id in the imported dataset (BOP ids start at 1).
 NEEDLE_OBJ_ID = 1
+#: Visibility tolerance of the masks, mm: the paper's pipeline computed its masks with 1 mm
+#: (its depth is exact up to the 1 mm rounding); BOP's 15 mm would count the tissue a needle
+#: is stitched through, a few mm in front of it, as not occluding.
+AMBF_DELTA_MM = 1.0
 #: The scene the frames go to.
 SCENE_ID = 1
 RECORD_NAME = "bopsurg_import.json"
@@ -259,7 +262,7 @@ def import_ambf_yaml(
     model: str | Path | None = None,
     split: str = "test",
     depth_scale: float = 1.0,
-    delta: float = DEFAULT_DELTA_MM,
+    delta: float = AMBF_DELTA_MM,
     renderer: DepthRenderer | None = None,
     renderer_name: str | None = None,
     progress: bool = True,
@@ -392,7 +395,7 @@ def import_bop_renumbered(
     out: str | Path,
     *,
     obj_id_offset: int = 1,
-    delta: float = DEFAULT_DELTA_MM,
+    delta: float = AMBF_DELTA_MM,
     renderer_name: str | None = None,
     progress: bool = True,
 ) -> RenumberReport:

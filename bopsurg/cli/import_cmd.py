@@ -6,7 +6,7 @@ import argparse
 
 import numpy as np
 
-from bopsurg.visibility import DEFAULT_DELTA_MM
+from bopsurg.ambf_import import AMBF_DELTA_MM
 
 HELP = "import the AMBF pipeline's data (YAML layout, or BOP with obj_id 0) as a BOP dataset"
 
@@ -72,8 +72,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--delta",
         type=float,
-        default=DEFAULT_DELTA_MM,
-        help="visibility tolerance of the masks in mm (default: 15, as BOP)",
+        default=AMBF_DELTA_MM,
+        help="visibility tolerance of the masks in mm (default: 1, as the AMBF pipeline; "
+        "BOP's 15 would count tissue a few mm in front of the needle as not occluding)",
     )
     p.add_argument("--renderer", default=None, help="depth renderer plugin (default: first)")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
