@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_rgb
-from bopsurg.bop.models import ObjectModel, save_ply
+from bopsurg.bop.models import ObjectModel, load_ply, save_ply
 from bopsurg.bop.results import load_results
 from bopsurg.errors import BopsurgError
 from bopsurg.estimation import PosePredictions, estimator_models
@@ -68,9 +68,11 @@ def test_a_slightly_different_needle_maps_within_its_shape_difference():
     assert d.max() < 1.5
 
 
-def test_same_model_needs_no_mapping_and_unmatched_models_are_refused():
+def test_same_model_needs_no_mapping_and_unmatched_models_are_refused(tmp_path):
     ours = needle_mesh()
     assert model_mapping(1, ours, needle_mesh(), target_name="x.ply") is None
+    save_ply(tmp_path / "ours.ply", ours)  # float32 in the file, as every generated dataset
+    assert model_mapping(1, ours, load_ply(tmp_path / "ours.ply"), target_name="x.ply") is None
     with pytest.raises(BopsurgError, match=r"x\.ply.*radii differ.*train the estimator"):
         model_mapping(1, ours, needle_mesh(NeedleSpec(arc_radius=6.0)), target_name="x.ply")
     box = trimesh.creation.box(extents=(10, 10, 10))
