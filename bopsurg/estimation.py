@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bopsurg.bop.detections import Detections
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.errors import BopsurgError, ShapeError
 from bopsurg.geometry import as_column, is_rotation
 
@@ -89,7 +90,12 @@ class PosePredictions:
 
 @runtime_checkable
 class PoseEstimator(Protocol):
-    """A model-based 6D pose estimator for RGB images (BOP units: mm, px)."""
+    """A model-based 6D pose estimator for RGB images (BOP units: mm, px).
+
+    Optional: ``object_models`` (obj_id → the :class:`~bopsurg.bop.meshes.ObjectModel` its
+    poses refer to, see :func:`estimator_models`) and ``report()`` (see
+    :func:`estimator_report`).
+    """
 
     #: Object ids the estimator can find.
     obj_ids: tuple[int, ...]
@@ -114,6 +120,24 @@ class PoseEstimator(Protocol):
             The estimates, any number per object, best first within an object.
         """
         ...
+
+
+def estimator_models(estimator: object) -> Mapping[int, ObjectModel] | None:
+    """The object models an estimator's poses refer to (optional attribute
+    ``object_models``: obj_id → :class:`~bopsurg.bop.meshes.ObjectModel`, the meshes it was
+    trained on), or None when it does not say.
+
+    ``bopsurg predict`` maps the poses into the dataset's model frame when the dataset's model
+    of an object differs (:mod:`bopsurg.model_frames`).
+    """
+    models = getattr(estimator, "object_models", None)
+    if models is None:
+        return None
+    if not isinstance(models, Mapping) or not all(
+        isinstance(m, ObjectModel) for m in models.values()
+    ):
+        raise BopsurgError("estimator's object_models must map obj_id to an ObjectModel")
+    return {int(k): v for k, v in models.items()}
 
 
 def estimator_report(estimator: object) -> str | None:

@@ -6,8 +6,12 @@ runs counter-clockwise (towards +Y) for ``body_deg`` degrees, then tapers to a p
 ``tip_deg`` degrees. The tail is a slightly thicker, flat-ended swage (where the suture is
 crimped), so tip and tail are distinguishable in shape. Units: mm.
 
-Defaults follow the paper's needle (surgical_scene_facts): centre-line radius 10.18 mm, wire
-Ø 0.72 mm, ≈120° body plus tip, BOP diameter ≈ 18.65 mm.
+Defaults follow the paper's needle: centre-line radius 10.18 mm, wire Ø 0.72 mm, ≈120° body
+plus tip, BOP diameter ≈ 18.65 mm.
+
+:func:`fit_needle` goes the other way: it finds the arc (centre, normal, radius, extent, tip
+and tail) of any needle mesh in its own model frame, so a user's CAD needle can stand in for
+this one.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from bopsurg.bop.meshes import ObjectModel
+from bopsurg.errors import ModelError
 
 
 @dataclass(frozen=True)
@@ -132,3 +137,189 @@ def needle_keypoints(model: ObjectModel) -> dict[str, Any]:
         "keypoints": {"tip": model.pts[-1].tolist(), "tail": model.pts[0].tolist()},
         "plane_normal": [0.0, 0.0, 1.0],
     }
+
+
+# --------------------------------------------------------------------------- arc fitting
+
+#: A needle's wire is thin next to its arc: the largest tube radius accepted, as a fraction
+#: of the arc radius (the paper's needle: 0.36 / 10.18 = 0.035).
+MAX_TUBE_FRACTION = 0.2
+#: Arcs shorter than this cannot fix a circle well; a full ring has no tip or tail.
+MIN_EXTENT_DEG, MAX_EXTENT_DEG = 30.0, 340.0
+#: Fraction of the arc at each end where the wire's thickness tells the tip from the tail.
+_END_FRACTION = 0.06
+#: The tip end must be at most this fraction as thick as the tail end.
+_TAPER_RATIO = 0.8
+
+
+@dataclass(frozen=True)
+class NeedleArc:
+    """The arc of a needle in its model frame (mm, radians where not said otherwise).
+
+    Attributes:
+        center: (3,) centre of the centre-line circle.
+        normal: (3,) unit normal of the needle plane, oriented so that the arc runs
+            counter-clockwise about it from the tail to the tip (as in :func:`needle_mesh`,
+            whose normal is +Z).
+        radius: Radius of the centre line.
+        extent_deg: Arc angle from the tail to the tip, degrees.
+        tip: (3,) tip point: the centre line's end at the pointed end.
+        tail: (3,) tail point: the centre line's end at the blunt (swaged) end.
+        wire_radius: Median distance of the surface from the centre line.
+        rms_mm: RMS distance of the vertices from the fitted tube (a fit-quality figure).
+    """
+
+    center: np.ndarray
+    normal: np.ndarray
+    radius: float
+    extent_deg: float
+    tip: np.ndarray
+    tail: np.ndarray
+    wire_radius: float
+    rms_mm: float
+
+    def frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """The arc's own frame in model coordinates: ``x_model = R @ x_arc + t``.
+
+        In the arc frame the needle lies as :func:`needle_mesh` builds it: centre at the
+        origin, plane z = 0, tail on +X, the arc running counter-clockwise (towards +Y) to
+        the tip at ``extent_deg``.
+        """
+        x = self.tail - self.center
+        x = x / np.linalg.norm(x)
+        R = np.stack([x, np.cross(self.normal, x), self.normal], axis=1)
+        return R, self.center.copy()
+
+    def middle_frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """Like :meth:`frame`, turned about the normal so that +X points at the arc's middle.
+
+        Two needles of slightly different extent overlap best when their middles coincide.
+        """
+        R, t = self.frame()
+        a = 0.5 * np.deg2rad(self.extent_deg)
+        c, s = np.cos(a), np.sin(a)
+        Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return R @ Rz, t
+
+
+def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors that span the plane orthogonal to ``normal``."""
+    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    u = np.cross(normal, helper)
+    u /= np.linalg.norm(u)
+    return u, np.cross(normal, u)
+
+
+def _fit_circle(x: np.ndarray, y: np.ndarray, iterations: int = 50) -> tuple[float, float, float]:
+    """Circle (centre a, b and radius) through 2D points, least squares in the distances.
+
+    Kåsa's algebraic fit (x² + y² = 2ax + 2by + c, linear) starts Gauss-Newton on the
+    geometric residuals |p − c| − r: the algebraic fit alone is biased on a partial arc
+    (0.1 mm on a 10 mm needle), the geometric one is not for a tube's symmetric surface.
+    """
+    A = np.stack([2 * x, 2 * y, np.ones_like(x)], axis=1)
+    (a, b, c), *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
+    r = float(np.sqrt(max(c + a * a + b * b, 0.0)))
+    for _ in range(iterations):
+        dx, dy = x - a, y - b
+        d = np.maximum(np.hypot(dx, dy), 1e-12)
+        jac = np.stack([-dx / d, -dy / d, -np.ones_like(d)], axis=1)
+        step, *_ = np.linalg.lstsq(jac, -(d - r), rcond=None)
+        a, b, r = a + step[0], b + step[1], r + step[2]
+        if np.abs(step).max() < 1e-12 * max(r, 1.0):
+            break
+    return float(a), float(b), float(r)
+
+
+def fit_needle(model: ObjectModel | np.ndarray, *, name: str = "model") -> NeedleArc:
+    """Fit the arc of a curved suturing needle to a mesh's vertices, in its model frame.
+
+    The plane is the least-variance direction of the vertices, the circle a least-squares
+    fit of their in-plane coordinates (:func:`_fit_circle`), the extent the circle minus the
+    largest angular gap between vertices. The tip is the end where the wire is thinner (it
+    tapers to a point), the tail the other (blunt or swaged) end. Vectorised over vertices.
+
+    Args:
+        model: The mesh (its vertices are used) or (V, 3) points, mm.
+        name: What to call the model in error messages (e.g. its file).
+
+    Returns:
+        The arc; its :meth:`NeedleArc.frame` maps :func:`needle_mesh`'s frame into the model's.
+
+    Raises:
+        ModelError: The points are not a needle: not flat, not on a circle, a tube too thick
+            for its arc, an arc too short or a closed ring, or neither end tapers.
+    """
+    pts = np.asarray(model.pts if isinstance(model, ObjectModel) else model, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 10 or not np.isfinite(pts).all():
+        raise ModelError(
+            f"not a needle: expected (V >= 10, 3) finite vertices, got {pts.shape}", path=name
+        )
+    mean = pts.mean(axis=0)
+    _, sv, vt = np.linalg.svd(pts - mean, full_matrices=False)
+    normal = vt[2]
+    if sv[1] <= 0 or sv[2] > 0.6 * sv[1]:
+        raise ModelError(
+            "not a needle: the vertices do not lie near a plane "
+            f"(spread across/along the plane {sv[2] / max(sv[1], 1e-12):.2f})",
+            path=name,
+        )
+    u, v = _plane_basis(normal)
+    rel = pts - mean
+    x, y, z = rel @ u, rel @ v, rel @ normal
+    a, b, radius = _fit_circle(x, y)
+    dx, dy = x - a, y - b
+    dist = np.hypot(dx, dy)
+    tube = np.hypot(dist - radius, z)  # distance of each vertex from the centre line
+    rms = float(np.sqrt(np.mean(tube**2)))
+    if not radius > 0 or np.quantile(tube, 0.98) > MAX_TUBE_FRACTION * radius:
+        raise ModelError(
+            f"not a needle: the vertices do not lie on a thin arc (fitted radius {radius:.3g} mm, "
+            f"98 % of vertices within {np.quantile(tube, 0.98):.3g} mm of it; a needle's wire "
+            f"is under {MAX_TUBE_FRACTION:.0%} of its radius)",
+            path=name,
+        )
+    theta = np.sort(np.mod(np.arctan2(dy, dx), 2 * np.pi))
+    gaps = np.diff(np.concatenate([theta, theta[:1] + 2 * np.pi]))
+    k = int(np.argmax(gaps))
+    start = theta[(k + 1) % len(theta)]  # first angle after the largest gap
+    extent = 2 * np.pi - float(gaps[k])
+    extent_deg = float(np.rad2deg(extent))
+    if not MIN_EXTENT_DEG <= extent_deg <= MAX_EXTENT_DEG:
+        raise ModelError(
+            f"not a needle: its arc spans {extent_deg:.0f}°, expected "
+            f"{MIN_EXTENT_DEG:.0f}–{MAX_EXTENT_DEG:.0f}° (an open arc with a tip and a tail)",
+            path=name,
+        )
+    # Angle of every vertex along the arc, 0 at the start end, extent at the other.
+    along = np.mod(np.arctan2(dy, dx) - start, 2 * np.pi)
+    along = np.where(along > extent + 1e-9, along - 2 * np.pi, along)  # round-off at start
+    band = _END_FRACTION * extent
+    near_start, near_end = along < band, along > extent - band
+    if not near_start.any() or not near_end.any():
+        raise ModelError("not a needle: too few vertices near its ends", path=name)
+    thick_start = float(np.median(tube[near_start]))
+    thick_end = float(np.median(tube[near_end]))
+    if min(thick_start, thick_end) > _TAPER_RATIO * max(thick_start, thick_end):
+        raise ModelError(
+            "not a needle: neither end tapers to a point, so the tip cannot be told from the "
+            f"tail (wire radius {thick_start:.3g} mm at one end, {thick_end:.3g} mm at the other)",
+            path=name,
+        )
+    tip_at_end = thick_end < thick_start
+    centre = mean + a * u + b * v
+    ends = start + np.array([0.0, extent])
+    end_pts = centre + radius * (np.cos(ends)[:, None] * u + np.sin(ends)[:, None] * v)
+    tail, tip = (end_pts[0], end_pts[1]) if tip_at_end else (end_pts[1], end_pts[0])
+    # Counter-clockwise about (u × v) = normal runs from the start end to the other end.
+    oriented = normal if tip_at_end else -normal
+    return NeedleArc(
+        center=centre,
+        normal=oriented / np.linalg.norm(oriented),
+        radius=radius,
+        extent_deg=extent_deg,
+        tip=tip,
+        tail=tail,
+        wire_radius=float(np.median(tube)),
+        rms_mm=rms,
+    )

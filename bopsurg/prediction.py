@@ -1,5 +1,10 @@
 """Run a pose estimator over the images of a BOP split and write a BOP19 results CSV.
 
+When the estimator declares the models it was trained on (``object_models``) and the
+dataset's model of an object differs, the poses are mapped into the dataset's model frame
+through the two fitted needle arcs (:mod:`bopsurg.model_frames`), or the run is refused
+before any image when the models cannot be matched.
+
 Each image is timed from the moment its pixels are in memory to the moment its poses are
 (image decoding excluded, as BOP asks), and the time is written in the CSV's ``time``
 column. Progress is appended to ``RESULTS.partial`` after every image, so a killed run
@@ -28,7 +33,8 @@ from bopsurg.bop.results import (
     save_results,
 )
 from bopsurg.errors import BopsurgError, ResultsError
-from bopsurg.estimation import PoseEstimator, PosePredictions
+from bopsurg.estimation import PoseEstimator, PosePredictions, estimator_models
+from bopsurg.model_frames import FrameMapping, map_predictions, model_mapping
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +50,37 @@ class PredictionRun:
         detections: The 2D box behind each estimate, per image.
         images: Number of images processed (resumed ones included).
         mean_time: Mean run time per image, s (resumed images included).
+        mappings: The objects whose poses were mapped into the dataset's model frame.
     """
 
     estimates: PoseEstimates
     detections: dict[ImageKey, Detections]
     images: int
     mean_time: float
+    mappings: tuple[FrameMapping, ...] = ()
+
+
+def dataset_mappings(dataset: BopDataset, estimator: PoseEstimator) -> dict[int, FrameMapping]:
+    """Mappings from the estimator's models to the dataset's, for the objects where they differ.
+
+    Empty when the estimator does not declare its models (``object_models``).
+
+    Raises:
+        BopsurgError: A model pair cannot be matched (see
+            :func:`bopsurg.model_frames.model_mapping`).
+    """
+    models = estimator_models(estimator)
+    if not models:
+        return {}
+    out = {}
+    for obj_id, source in sorted(models.items()):
+        if obj_id not in dataset.obj_ids:
+            continue
+        target = dataset.model(obj_id)
+        m = model_mapping(obj_id, source, target, target_name=str(dataset.model_path(obj_id)))
+        if m is not None:
+            out[obj_id] = m
+    return out
 
 
 def image_targets(dataset: BopDataset, known: Iterable[int]) -> dict[ImageKey, tuple[int, ...]]:
@@ -165,9 +196,12 @@ def predict_dataset(
         progress: Show a progress bar.
 
     Raises:
-        BopsurgError: The estimator returned something that is not a PosePredictions, or
-            a bad image / dataset file (named).
+        BopsurgError: The estimator returned something that is not a PosePredictions, its
+            models cannot be matched to the dataset's, or a bad image / dataset file (named).
     """
+    mappings = dataset_mappings(dataset, estimator)
+    for mapping in mappings.values():
+        log.info("%s", mapping.describe())
     out = Path(out)
     partial = out.with_name(out.name + ".partial")
     lines, done = _read_partial(partial)
@@ -193,11 +227,12 @@ def predict_dataset(
                 img_boxes = boxes.get((scene_id, im_id), Detections.empty())
             t0 = time.perf_counter()
             pred = estimator.predict(rgb, K, obj_ids=todo[(scene_id, im_id)], boxes=img_boxes)
-            secs = time.perf_counter() - t0
             if not isinstance(pred, PosePredictions):
                 raise BopsurgError(
                     f"estimator returned {type(pred).__name__}, expected PosePredictions"
                 )
+            pred = map_predictions(pred, mappings)
+            secs = time.perf_counter() - t0
             chunk = []
             for k in range(len(pred)):
                 chunk.append(_format_row(scene_id, im_id, pred, k, secs))
@@ -216,4 +251,4 @@ def predict_dataset(
         save_detections(detections_out, dets, done)
     partial.unlink()
     mean_time = float(np.mean(list(done.values()))) if done else float("nan")
-    return PredictionRun(est, dets, len(done), mean_time)
+    return PredictionRun(est, dets, len(done), mean_time, tuple(mappings.values()))

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from bopsurg.bop.meshes import load_ply
 from bopsurg.errors import BopsurgError
 from bopsurg.estimation import Detections, PosePredictions
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
@@ -29,6 +30,7 @@ from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser
 from bopsurg.models.training import resolve_device
+from bopsurg.needle import needle_mesh
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +58,11 @@ class PoseHead:
         load_weights(self.net, state, path)
         self.net.to(device).eval()
         self.meta = meta
+        #: The mesh the poses refer to: ``meta["model_ply"]`` (beside the checkpoint) when the
+        #: training recorded it, else bopsurg's default needle, which every generated dataset
+        #: and the shipped model use.
+        ply = meta.get("model_ply")
+        self.model = load_ply(Path(path).parent / ply) if ply else needle_mesh()
 
 
 class Detector:
@@ -105,6 +112,8 @@ class GdrNetEstimator:
         heads = [PoseHead(p, self.device) for p in poses]
         self.heads = {h.obj_id: h for h in heads}
         self.obj_ids = tuple(sorted(self.heads))
+        #: The models the poses refer to (see ``bopsurg.estimation.estimator_models``).
+        self.object_models = {o: h.model for o, h in self.heads.items()}
         self.conf, self.max_per_object, self.decode = conf, max_per_object, decode
         #: With ``decode="pnp"``: ROIs solved by PnP-RANSAC, and those that fell back to the
         #: direct decoding (too few mask pixels or inliers); a bench reports both.

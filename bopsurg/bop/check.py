@@ -75,6 +75,8 @@ class _Report:
     def __init__(self, max_problems: int | None) -> None:
         self.items: list[Problem] = []
         self.max_problems = max_problems
+        #: Files that use obj_id 0, and how often (reported first, see _zero_id_problem).
+        self.zero_ids: Counter[str] = Counter()
 
     def add(self, path: str | Path, field: str | None, message: str) -> None:
         self.items.append(Problem(str(path), field, message))
@@ -150,6 +152,8 @@ def _check_models(root: Path, rep: _Report) -> set[int] | None:
     declared = set()
     if isinstance(content, dict):
         declared = {k for k in content if isinstance(k, int) and k >= 0}
+    if 0 in declared:
+        rep.zero_ids[str(info_path)] += 1
     for obj_id, info in infos.items():
         for i, sym in enumerate(info.get("symmetries_discrete") or []):
             m = np.asarray(sym, dtype=np.float64).reshape(4, 4)
@@ -253,6 +257,8 @@ def _check_gts(
         for gt_id, gt in enumerate(items):
             if gt is None:
                 continue
+            if gt.obj_id == 0:
+                rep.zero_ids[str(path)] += 1
             if known_obj is not None and gt.obj_id not in known_obj:
                 unknown.setdefault(gt.obj_id, []).append(f"{im_id}/{gt_id}/obj_id")
             if np.all(gt.t == -1):  # placeholder of a fully occluded instance
@@ -549,7 +555,9 @@ def check_dataset(
     ``test_targets_bop19.json`` (if present) names existing scenes, images and objects with
     ``inst_count`` no larger than the number of GT instances, and ``test_targets_bop24.json``
     (if present) existing scenes and images; each ``scene_gt_coco.json`` (if present) has the
-    COCO layout and RLE masks of the stated size.
+    COCO layout and RLE masks of the stated size. A dataset that numbers an object 0 (as the
+    AMBF pipeline's BOP writer does) gets that problem first, with the command that renumbers
+    it.
 
     Args:
         root: The dataset folder.
@@ -567,7 +575,27 @@ def check_dataset(
         _check_all(Path(root), split, split_type, check_images, progress, rep)
     except _EnoughProblemsError:
         logger.info("stopped after %d problems", len(rep.items))
+    if rep.zero_ids:
+        rep.items.insert(0, _zero_id_problem(Path(root), rep.zero_ids))
+        if max_problems is not None:
+            del rep.items[max_problems:]
     return rep.items
+
+
+def _zero_id_problem(root: Path, files: Counter[str]) -> Problem:
+    """The first problem of a dataset that numbers an object 0, with how to fix it.
+
+    BOP object ids start at 1 (the reference toolkit and ``bopsurg annotate`` reject 0); the
+    AMBF pipeline's BOP writer numbers its needle 0.
+    """
+    first, uses = next(iter(files.items()))
+    more = f" and {len(files) - 1} other file(s)" if len(files) > 1 else ""
+    return Problem(
+        first,
+        "obj_id",
+        f"obj_id 0 is used ({uses}x here{more}), but BOP object ids start at 1; renumber "
+        f"the objects with: bopsurg import bop {root} --out NEW_DATASET --obj-id-offset 1",
+    )
 
 
 def _check_all(

@@ -78,6 +78,11 @@ CORE: tuple[Command, ...] = (
         "bopsurg.cli.annotate_cmd",
     ),
     Command(
+        "import",
+        "import the AMBF pipeline's data (YAML layout, or BOP with obj_id 0) as a BOP dataset",
+        "bopsurg.cli.import_cmd",
+    ),
+    Command(
         "example",
         "write the embedded example: a needle BOP dataset and a results CSV",
         "bopsurg.cli.example_cmd",

@@ -31,6 +31,12 @@ The built-in estimator 'gdrnet' (pip install bopsurg[torch]) runs a YOLOX-like d
 a GDR-Net-like pose head; without --detector/--pose it uses the small model shipped with
 bopsurg (see 'bopsurg train --help' to train your own). Other estimators register under the
 'bopsurg.estimators' entry-point group and get the --option KEY=VALUE pairs.
+
+Model frames: a pose only means something in the frame of its object model. When the
+estimator says which needle model it was trained on and the dataset's model differs (e.g. the
+AMBF pipeline's Needle.ply, your own CAD needle), the poses are mapped into the dataset's
+model frame through the two fitted needle arcs (one line says so); needles of different
+radius or arc, or models that are not needles, are refused.
 """
 
 EPILOG = """\

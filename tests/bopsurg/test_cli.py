@@ -132,7 +132,7 @@ def test_help_loads_no_command_module():
         "import sys\n"
         "from bopsurg.cli.main import main\n"
         "for argv in (['--help'], ['eval', '--help'], ['check', '--help'],\n"
-        "             ['compare', '--help']):\n"
+        "             ['compare', '--help'], ['import', '--help']):\n"
         "    try:\n"
         "        main(argv)\n"
         "    except SystemExit:\n"
@@ -152,7 +152,8 @@ def test_literal_defaults_and_help_lines_match_the_code():
     import dataclasses
     import importlib
 
-    from bopsurg.cli import annotate_cmd, example_cmd, viz_cmd
+    from bopsurg.ambf_import import AMBF_DELTA_MM
+    from bopsurg.cli import annotate_cmd, example_cmd, import_cmd, viz_cmd
     from bopsurg.cli.commands import PLUGIN_HELP
     from bopsurg.example import ExampleSpec
     from bopsurg.plugins import available_plugins
@@ -160,6 +161,7 @@ def test_literal_defaults_and_help_lines_match_the_code():
     from bopsurg.viz.rerun_log import DEFAULT_IMAGE_FRAMES
 
     assert annotate_cmd.DEFAULT_DELTA_MM == DEFAULT_DELTA_MM
+    assert import_cmd.AMBF_DELTA_MM == AMBF_DELTA_MM
     fields = {f.name: f.default for f in dataclasses.fields(ExampleSpec)}
     assert {k: fields[k] for k in example_cmd.SPEC_DEFAULTS} == example_cmd.SPEC_DEFAULTS
     assert f"up to {DEFAULT_IMAGE_FRAMES} frames" in viz_cmd.DESCRIPTION

@@ -20,6 +20,7 @@ from bopsurg.bop.images import load_rgb
 from bopsurg.bop.results import load_results
 from bopsurg.cli.main import main
 from bopsurg.estimation import load_estimator
+from bopsurg.needle import needle_mesh
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("pybullet")
@@ -178,6 +179,9 @@ def test_the_shipped_model_is_small_and_loads():
     assert size <= 20 * 2**20
     est = load_estimator("gdrnet", {"device": "cpu"})
     assert est.obj_ids == (1,)
+    # it says which mesh its poses refer to: bopsurg's default needle (bopsurg predict maps
+    # them into a dataset's own needle frame)
+    np.testing.assert_array_equal(est.object_models[1].pts, needle_mesh().pts)
     rgb = np.full((480, 640, 3), 90, np.uint8)
     K = np.array([[415.0, 0, 320], [0, 415.0, 240], [0, 0, 1]])
     pred = est.predict(rgb, K)
