@@ -2,13 +2,17 @@
 
 One pass over the split runs the ``gdrnet`` estimator without refinement (the "before"
 poses: detector + pose head, direct decoding), then the refinement stage on the same image,
-boxes and poses (the "after" poses; the estimator's default ``refine=fit`` runs exactly this
-stage), and optionally the stage again with the GT visible masks as evidence (``--oracle``:
-the fit's ceiling). Each set is written as a BOP results CSV and scored by ``bopsurg eval``;
-it prints the paper's table, AR_MSSD / AR_MSPD, the median translation error per camera axis
-and the CPU time per 640x480 image (network, refinement), 2 threads.
+boxes and poses (the "after" poses; the estimator's ``refine=fit`` runs exactly this stage;
+skipped with ``--segmenter none``), and optionally the stage again with the GT visible masks
+as evidence (``--oracle``: the fit's ceiling). Each set is written as a BOP results CSV and
+scored by ``bopsurg eval``; it prints the paper's table, AR_MSSD / AR_MSPD, the median
+translation error per camera axis and the CPU time per 640x480 image (network, refinement),
+2 threads.
 
-    python bench/bench_refine.py DATASET --out bench/out/refine [--oracle] [--stride 1]
+    python bench/bench_refine.py DATASET --out bench/out/refine --segmenter SEG.pt \
+        [--oracle] [--stride 1] [--fit prior_weight=0.3]
+
+SEG.pt comes from ``python -m bopsurg.models.refine.train_seg TRAIN_DATASET --out RUN``.
 
 DATASET needs a test split from episodes and viewpoints never used in training (the model
 card's recipe: bags seeds 101..102, ``generate --split test --replays 16 --period 2 --seed 1``).
