@@ -10,7 +10,8 @@ lie on them; two robust residuals, both in image px, say so:
   visible arc constrains its projected size, i.e. the depth.
 - *forward* (model → evidence): the distance transform of the evidence sampled at the
   projected centre-line points, so the arc does not run past the needle's ends. Occluded
-  parts are far from any evidence; the robust (Cauchy) loss caps what they cost.
+  parts are far from any evidence; a redescending (Geman-McClure) loss makes them cost a
+  constant without pulling the arc towards the visible part.
 
 Gauss-Newton with Levenberg-Marquardt damping and analytic Jacobians runs several starts in
 lockstep (vectorised over starts): the network's pose and its mirror image through the line
@@ -116,7 +117,14 @@ class FitSettings:
     samples: int = 40  # centre-line points of the model polyline
     iterations: int = 12
     scale_reverse: float = 2.0  # Cauchy scale of the evidence → line distances, px
-    scale_forward: float = 3.0  # Cauchy scale of the line → evidence distances, px
+    # Geman-McClure (redescending) scale of the line → evidence distances, px: a centre-line
+    # sample behind an occluder lies far from the visible evidence and must neither cost
+    # more the farther it is nor pull the arc; a Cauchy loss still pulls with force ~1/r,
+    # which shrinks and shifts the arc towards the visible part. Started at the true pose on
+    # ground-truth visible masks, without prior, the median depth drift is 5.8 mm with
+    # Cauchy at 3 px, 4.3 mm with this loss at 3 px, 3.0 mm at 1.5 px (the rest is arcs
+    # seen edge-on, where the image does not fix the depth and the prior must)
+    scale_forward: float = 1.5
     forward_weight: float = 1.0  # weight of the forward term's mean against the reverse one
     lambda0: float = 1e-3  # initial LM damping (relative to the diagonal)
     mirror_start: bool = False  # also start from the tilt-mirrored pose
@@ -143,6 +151,15 @@ def _cauchy(r: F64, c: float) -> tuple[F64, F64]:
     """Cauchy loss ρ(r) = c²/2 · log(1 + (r/c)²) and its IRLS weight ρ'(r)/r."""
     q = (r / c) ** 2
     return 0.5 * c * c * np.log1p(q), 1.0 / (1.0 + q)
+
+
+def _geman_mcclure(r: F64, c: float) -> tuple[F64, F64]:
+    """Geman-McClure loss ρ(r) = c²/2 · r²/(c² + r²) and its IRLS weight ρ'(r)/r.
+
+    Redescending: a residual far beyond ``c`` costs a constant and pulls with ~zero force.
+    """
+    q = (r / c) ** 2
+    return 0.5 * c * c * q / (1.0 + q), 1.0 / (1.0 + q) ** 2
 
 
 def _skew(v: F64) -> F64:
@@ -238,7 +255,7 @@ class _Problem:
         grid_xy = (uv - ev.origin) / ev.step
         d_fwd = _bilinear(ev.dist, grid_xy)
         rho_r, w_r = _cauchy(d_rev, s.scale_reverse)
-        rho_f, w_f = _cauchy(d_fwd, s.scale_forward)
+        rho_f, w_f = _geman_mcclure(d_fwd, s.scale_forward)
         cost = rho_r.mean(-1) + s.forward_weight * rho_f.mean(-1)
         if not with_jacobian:
             return cost, None, None, None
