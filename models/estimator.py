@@ -40,8 +40,8 @@ SHIPPED = Path(__file__).parent / "weights"
 #: The object the refinement's arc model describes (the needle).
 NEEDLE_OBJ_ID = 1
 REFINE_MODES = ("fit", "none")
-#: The shipped needle segmenter; the refinement is on by default once it ships (no segmenter
-#: weights are trained yet, see MODEL_CARD.md), and ``refine=fit`` needs one until then.
+#: The shipped needle segmenter (see MODEL_CARD.md); the refinement is on by default when
+#: this file exists, ``refine=none`` turns it off.
 SHIPPED_SEGMENTER = SHIPPED / "needle_seg.pt"
 
 
