@@ -5,7 +5,9 @@ image: letterbox to the detector input, detect, keep the best ``max_per_object``
 object above ``conf``, crop a square ROI of side 1.5 x the box's longer side around the box
 centre (test-time dynamic zoom-in), run the pose head, and decode the pose directly from its
 rotation and SITE outputs (``decode=direct``, the default) or by PnP-RANSAC on its dense
-2D-3D correspondences (``decode=pnp``). Boxes from another detector can replace ours.
+2D-3D correspondences (``decode=pnp``), then optionally refine the needle's pose against its
+mask predicted at full image resolution (``refine=fit``; :mod:`bopsurg.models.refine`).
+Boxes from another detector can replace ours.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from bopsurg.models.pose.decode import pnp_ransac_from_output, pose_from_output
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser
+from bopsurg.models.refine.refiner import NeedleRefiner
 from bopsurg.models.training import resolve_device
 from bopsurg.needle import needle_mesh
 
@@ -36,6 +39,12 @@ log = logging.getLogger(__name__)
 
 #: The small model shipped with bopsurg (see MODEL_CARD.md there).
 SHIPPED = Path(__file__).parent / "weights"
+#: The object the refinement's arc model describes (the needle).
+NEEDLE_OBJ_ID = 1
+REFINE_MODES = ("fit", "none")
+#: The shipped needle segmenter (see MODEL_CARD.md); the refinement is on by default when
+#: this file exists, ``refine=none`` turns it off.
+SHIPPED_SEGMENTER = SHIPPED / "needle_seg.pt"
 
 
 class PoseHead:
@@ -93,6 +102,7 @@ class GdrNetEstimator:
         max_per_object: Boxes (hence poses) kept per object and image, best first.
         decode: ``direct`` (rotation + SITE heads) or ``pnp`` (PnP-RANSAC on the coordinates;
             a ROI where PnP finds no solution keeps the direct pose, see ``pnp_fallback``).
+        segmenter: Needle-segmenter checkpoint for the refinement, or None for none.
     """
 
     def __init__(
@@ -104,6 +114,7 @@ class GdrNetEstimator:
         conf: float = 0.05,
         max_per_object: int = 1,
         decode: str = "direct",
+        segmenter: str | Path | None = None,
     ) -> None:
         if decode not in ("direct", "pnp"):
             raise BopsurgError(f"decode must be 'direct' or 'pnp', got {decode!r}")
@@ -119,6 +130,10 @@ class GdrNetEstimator:
         #: direct decoding (too few mask pixels or inliers); a bench reports both.
         self.pnp_solved = 0
         self.pnp_fallback = 0
+        #: The refinement stage (needle only), or None.
+        self.refiner = (
+            None if segmenter is None else NeedleRefiner.from_checkpoint(segmenter, self.device)
+        )
 
     @torch.inference_mode()
     def detect(self, rgb: np.ndarray) -> Detections:
@@ -134,13 +149,19 @@ class GdrNetEstimator:
         return Detections(obj, det[:, 4], xywh)
 
     def report(self) -> str | None:
-        """How the PnP decoding went (``decode="pnp"``), for the end of ``bopsurg predict``."""
-        if self.decode != "pnp":
-            return None
-        return (
-            f"PnP-RANSAC solved {self.pnp_solved} ROIs, {self.pnp_fallback} fell back to the "
-            "direct decoding"
-        )
+        """How PnP (``decode="pnp"``) and the refinement went, for ``bopsurg predict``."""
+        lines = []
+        if self.decode == "pnp":
+            lines.append(
+                f"PnP-RANSAC solved {self.pnp_solved} ROIs, {self.pnp_fallback} fell back to "
+                "the direct decoding"
+            )
+        if self.refiner is not None:
+            st = self.refiner.stats
+            lines.append(
+                f"refinement improved {st.refined} needle poses, {st.kept} kept the network's"
+            )
+        return "; ".join(lines) or None
 
     def _select(self, boxes: Detections, obj_ids: tuple[int, ...]) -> Detections:
         keep = []
@@ -194,7 +215,10 @@ class GdrNetEstimator:
             else:
                 R_t, t_t = pose_from_output(out, K_b, centre, box_xywh[:, 2:], side, cfg)
                 R, t = R_t.double().cpu().numpy(), t_t.double().cpu().numpy()
-            R_out[rows], t_out[rows] = _orthonormal(R), t
+            R, t = _orthonormal(R), t
+            if self.refiner is not None and int(obj) == NEEDLE_OBJ_ID:
+                R, t, _ = self.refiner(image, np.asarray(K, float), box_xywh, R, t)
+            R_out[rows], t_out[rows] = R, t
         return PosePredictions(found.obj_id, found.score, R_out, t_out, found.bbox)
 
 
@@ -211,9 +235,13 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
 
     Options (strings from ``--option``): ``detector`` and ``pose`` (checkpoint paths; default:
     the shipped model), ``device`` (``auto``), ``conf`` (0.05), ``max_per_object`` (1),
-    ``decode`` (``direct`` or ``pnp``), ``no_detector`` (``1``: external boxes only).
+    ``decode`` (``direct`` or ``pnp``), ``no_detector`` (``1``: external boxes only),
+    ``refine`` (``fit``: fit the needle arc to its full-resolution mask; ``none``: the network's
+    pose as it is; default ``fit`` when a segmenter is shipped, else ``none``) and
+    ``segmenter`` (its checkpoint; default: the shipped one).
     """
     known = {"detector", "pose", "device", "conf", "max_per_object", "decode", "no_detector"}
+    known |= {"refine", "segmenter"}
     unknown = sorted(set(options) - known)
     if unknown:
         raise BopsurgError(f"gdrnet: unknown option(s) {unknown}; known: {sorted(known)}")
@@ -226,6 +254,16 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         max_per = int(options.get("max_per_object", 1))
     except ValueError as err:
         raise BopsurgError(f"gdrnet: bad option value ({err})") from err
+    segmenter = Path(options.get("segmenter") or SHIPPED_SEGMENTER)
+    default_refine = "fit" if "segmenter" in options or SHIPPED_SEGMENTER.exists() else "none"
+    refine = str(options.get("refine", default_refine))
+    if refine not in REFINE_MODES:
+        raise BopsurgError(f"gdrnet: refine must be one of {REFINE_MODES}, got {refine!r}")
+    if refine == "fit" and not segmenter.exists():
+        raise BopsurgError(
+            f"gdrnet: refine=fit needs a needle segmenter, {segmenter} does not exist "
+            "(train one with python -m bopsurg.models.refine.train_seg, pass segmenter=PATH)"
+        )
     return GdrNetEstimator(
         detector,
         [pose],
@@ -233,4 +271,5 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         conf=conf,
         max_per_object=max_per,
         decode=str(options.get("decode", "direct")),
+        segmenter=None if refine == "none" else segmenter,
     )

@@ -1,0 +1,220 @@
+"""Bench: the needle refinement, before/after, on the same held-out test split.
+
+One pass over the split runs the ``gdrnet`` estimator without refinement (the "before"
+poses: detector + pose head, direct decoding), then the refinement stage on the same image,
+boxes and poses (the "after" poses; the estimator's ``refine=fit`` runs exactly this stage;
+skipped with ``--segmenter none``), and optionally the stage again with the GT visible masks
+as evidence (``--oracle``: the fit's ceiling). Each set is written as a BOP results CSV and
+scored by ``bopsurg eval``; it prints the paper's table, AR_MSSD / AR_MSPD, the median
+translation error per camera axis and the CPU time per 640x480 image (network, refinement),
+2 threads.
+
+    python bench/bench_refine.py DATASET --out bench/out/refine --segmenter SEG.pt \
+        [--oracle] [--stride 1] [--fit prior_weight=0.3]
+
+SEG.pt comes from ``python -m bopsurg.models.refine.train_seg TRAIN_DATASET --out RUN``.
+
+DATASET needs a test split from episodes and viewpoints never used in training (the model
+card's recipe: bags seeds 101..102, ``generate --split test --replays 16 --period 2 --seed 1``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.images import load_mask, load_rgb
+from bopsurg.bop.results import PoseEstimates, save_results
+from bopsurg.cli.main import main as bopsurg
+from bopsurg.estimation import load_estimator
+from bopsurg.evaluation.summary import format_table
+from bopsurg.models.estimator import SHIPPED
+from bopsurg.models.pose.roi import crop
+from bopsurg.models.refine import ArcModel, FitSettings, NeedleRefiner, Segmenter
+
+PAPER = {"re": 7.74, "te": 1.49, "mssd": 1.43}
+#: Evidence grid side (px) of the oracle stage when no segmenter sets it.
+ORACLE_GRID = 192
+
+
+def gt_mask_evidence(mask: np.ndarray):
+    """An evidence source that crops a GT visible mask like the segmenter crops the image."""
+    m = torch.from_numpy(mask.astype(np.float32))[None, None]
+
+    def evidence(image, centre, side, size):
+        index = torch.zeros(len(centre), dtype=torch.long)
+        return crop(m, centre, side, size, "bilinear", index=index)[:, 0].numpy()
+
+    return evidence
+
+
+def fit_settings(pairs: list[str]) -> FitSettings:
+    """FitSettings with ``KEY=VALUE`` overrides (ints, floats, 0/1 flags, comma tuples)."""
+    base = FitSettings()
+    kw: dict = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        if not hasattr(base, key):
+            raise SystemExit(f"--fit: unknown FitSettings knob {key!r}")
+        current = getattr(base, key)
+        if isinstance(current, tuple):
+            kw[key] = tuple(float(v) for v in value.split(","))
+        else:
+            kw[key] = type(current)(float(value))
+    return dataclasses.replace(base, **kw)
+
+
+def axis_medians(ds: BopDataset, est: PoseEstimates, min_visib: float) -> list[float]:
+    """Median |dx|, |dy|, |dz| (camera frame, mm) against the first GT of each image with
+    visib_fract >= min_visib (one needle per image)."""
+    d = []
+    for s, i, t in zip(est.scene_id, est.im_id, est.t, strict=True):
+        scene = ds.scene(int(s))
+        if scene.gt_info[int(i)][0].visib_fract >= min_visib:
+            d.append(np.abs(t - scene.gt[int(i)][0].t))
+    return [float(v) for v in np.median(np.array(d), axis=0)]
+
+
+def evaluate(data: Path, results: Path, out: Path) -> tuple[dict, dict]:
+    args = ["-q", "eval", str(data), str(results), "--out", str(out)]
+    code = bopsurg([*args, "--metrics", "re,te,mssd,mspd", "--no-progress"])
+    if code:
+        raise SystemExit(f"bopsurg eval failed with exit code {code}")
+    return (
+        json.loads((out / "summary.json").read_text()),
+        json.loads((out / "scores.json").read_text()),
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("dataset", type=Path, help="BOP dataset root with a test split")
+    ap.add_argument("--out", type=Path, required=True, help="output folder")
+    ap.add_argument("--detector", default=None, help="default: the shipped one")
+    ap.add_argument("--pose", default=None, help="default: the shipped one")
+    ap.add_argument(
+        "--segmenter",
+        default=str(SHIPPED / "needle_seg.pt"),
+        help="segmenter checkpoint, or 'none' (then only 'before' and '--oracle' are scored)",
+    )
+    ap.add_argument("--oracle", action="store_true", help="also refine against GT masks")
+    ap.add_argument("--stride", type=int, default=1, help="every n-th image (quick looks)")
+    ap.add_argument(
+        "--fit",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a FitSettings knob (numbers; repeatable), e.g. --fit prior_weight=0.05",
+    )
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    ds = BopDataset(args.dataset, "test")
+    opts = {"refine": "none", "device": "cpu"}
+    opts |= {k: v for k, v in (("detector", args.detector), ("pose", args.pose)) if v}
+    est = load_estimator("gdrnet", opts)
+    settings = fit_settings(args.fit)
+    refiner = None
+    if args.segmenter != "none":
+        seg = Segmenter(args.segmenter, torch.device("cpu"))
+        refiner = NeedleRefiner(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings)
+    info = ds.models_info[1]["keypoints"]
+    arc = ArcModel.from_keypoints(info["tail"], info["tip"])
+    oracle = NeedleRefiner(
+        gt_mask_evidence(np.zeros((1, 1), bool)), arc, ORACLE_GRID, settings=settings
+    )
+
+    names = ["before"] + (["after"] if refiner else []) + (["oracle"] if args.oracle else [])
+    rows: dict[str, list] = {n: [] for n in names}
+    net_ms: list[float] = []
+    ref_ms: list[float] = []
+    oracle_ms: list[float] = []
+    keys = [(s, i) for s in ds.scene_ids for i in ds.scene(s).im_ids][:: args.stride]
+    for s, i in keys:
+        scene = ds.scene(s)
+        rgb, K = load_rgb(scene.rgb_path(i)), scene.camera[i].K
+        t0 = time.perf_counter()
+        pred = est.predict(rgb, K)
+        t1 = time.perf_counter()
+        if len(pred) == 0:
+            continue
+        image = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255
+        b = torch.as_tensor(pred.bbox, dtype=torch.float32)
+        box = torch.cat([b[:, :2] - 0.5, b[:, 2:]], dim=1)  # as the estimator crops
+        net_ms.append(1000 * (t1 - t0))
+        poses = {"before": (pred.R, pred.t)}
+        if refiner is not None:
+            t2 = time.perf_counter()
+            poses["after"] = refiner(image, K, box, pred.R, pred.t)[:2]
+            ref_ms.append(1000 * (time.perf_counter() - t2))
+        if args.oracle:
+            oracle.evidence = gt_mask_evidence(load_mask(scene.mask_visib_path(i, 0)))
+            t2 = time.perf_counter()
+            poses["oracle"] = oracle(image, K, box, pred.R, pred.t)[:2]
+            oracle_ms.append(1000 * (time.perf_counter() - t2))
+        for name, (Rn, tn) in poses.items():
+            for k in range(len(pred)):
+                rows[name].append((s, i, int(pred.obj_id[k]), float(pred.score[k]), Rn[k], tn[k]))
+
+    report: dict = {"images": len(keys), "stride": args.stride, "fit": vars(settings)}
+    table = []
+    for name in names:
+        r = rows[name]
+        est_n = PoseEstimates(
+            scene_id=np.array([x[0] for x in r]),
+            im_id=np.array([x[1] for x in r]),
+            obj_id=np.array([x[2] for x in r]),
+            score=np.array([x[3] for x in r]),
+            R=np.array([x[4] for x in r]),
+            t=np.array([x[5] for x in r]),
+            time=np.full(len(r), -1.0),
+            line=np.full(len(r), -1),
+        )
+        path = args.out / f"results_{name}.csv"
+        save_results(path, est_n)
+        summary, scores = evaluate(args.dataset, path, args.out / f"eval_{name}")
+        axes = axis_medians(ds, est_n, summary["min_visib"])
+        report[name] = {"summary": summary, "scores": scores, "axes_mm": axes}
+        print(f"\n== {name} ==\n{format_table(summary, scores)}")
+        print("median |dx|, |dy|, |dz| (camera frame, mm): " + ", ".join(f"{v:.2f}" for v in axes))
+        tb = summary["table"]
+        table.append(
+            f"| {name} | {tb['re']['median']:.2f} | {tb['te']['median']:.2f} | "
+            f"{tb['mssd']['median']:.2f} | {scores['bop19_average_recall_mssd']:.3f} | "
+            f"{scores['bop19_average_recall_mspd']:.3f} | "
+            + " / ".join(f"{v:.2f}" for v in axes)
+            + " |"
+        )
+    report["net_ms"] = {"median": float(np.median(net_ms)), "p90": float(np.percentile(net_ms, 90))}
+    fit = ref_ms or oracle_ms  # the fit's time (the segmenter's included when there is one)
+    report["refine_ms"] = {"median": float(np.median(fit)), "p90": float(np.percentile(fit, 90))}
+    stage = refiner or oracle
+    report["refine_stats"] = vars(stage.stats)
+    print(
+        "\n| | median RE [deg] | median TE [mm] | median MSSD [mm] | AR_MSSD | AR_MSPD "
+        "| |dx| / |dy| / |dz| [mm] |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    print("\n".join(table))
+    print(f"| paper (GDRNPP) | {PAPER['re']} | {PAPER['te']} | {PAPER['mssd']} | | | |")
+    print(
+        f"\nCPU time per 640x480 image ({args.threads} threads): network median "
+        f"{report['net_ms']['median']:.1f} ms (p90 {report['net_ms']['p90']:.1f}); refinement "
+        f"median {report['refine_ms']['median']:.1f} ms (p90 {report['refine_ms']['p90']:.1f}); "
+        f"refined {stage.stats.refined}, kept {stage.stats.kept}"
+    )
+    (args.out / "bench_refine.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
+
+
+if __name__ == "__main__":
+    main()

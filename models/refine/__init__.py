@@ -1,0 +1,25 @@
+"""Refinement of the pose head's needle poses against full-resolution image evidence.
+
+:mod:`.fit` (the exact arc fitted by robust Gauss-Newton / LM to foreground pixels),
+:mod:`.seghead` (a light full-resolution needle segmenter giving that evidence),
+:mod:`.refiner` (the stage the ``gdrnet`` estimator runs: segment, fit, fall back) and
+:mod:`.train_seg` (training the segmenter). Units: mm, px.
+"""
+
+from __future__ import annotations
+
+from bopsurg.models.refine.fit import ArcModel, Evidence, FitResult, FitSettings, refine_pose
+from bopsurg.models.refine.refiner import NeedleRefiner, Segmenter
+from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
+
+__all__ = [
+    "ArcModel",
+    "Evidence",
+    "FitResult",
+    "FitSettings",
+    "NeedleRefiner",
+    "NeedleSegNet",
+    "SegConfig",
+    "Segmenter",
+    "refine_pose",
+]

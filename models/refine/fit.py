@@ -1,0 +1,392 @@
+"""Least-squares fit of the exact needle arc to foreground evidence at full image resolution.
+
+The needle's centre line is a circular arc of known radius and extent in the model XY plane
+(:mod:`bopsurg.needle`). Its projection must explain the foreground pixels of the image and
+lie on them; two robust residuals, both in image px, say so:
+
+- *reverse* (evidence → model): every foreground pixel's distance to the projected centre
+  line (a polyline), linearised point-to-line as in ICP. The pixels of a 4 px wire spread
+  on both sides of the line, so least squares centres the line in the wire, and the whole
+  visible arc constrains its projected size, i.e. the depth.
+- *forward* (model → evidence): the distance transform of the evidence sampled at the
+  projected centre-line points, so the arc does not run past the needle's ends. Occluded
+  parts are far from any evidence; a redescending (Geman-McClure) loss makes them cost a
+  constant without pulling the arc towards the visible part.
+
+Gauss-Newton with Levenberg-Marquardt damping and analytic Jacobians runs several starts in
+lockstep (vectorised over starts): the network's pose and its mirror image through the line
+of sight (a circle and its tilt-mirrored twin project to the same ellipse). The best start
+wins only if its cost beats the cost of the network's own pose; otherwise the caller keeps
+the network's pose. Units: mm, px; poses model-to-camera, ``x_cam = R x_model + t``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+#: Fewest foreground pixels a fit needs; fewer and the pose is left as it is.
+MIN_EVIDENCE = 12
+
+
+@dataclass(frozen=True)
+class ArcModel:
+    """The needle's centre line: an arc of ``radius`` mm from angle 0 (tail) to ``arc_rad``."""
+
+    radius: float = 10.18
+    arc_rad: float = float(np.deg2rad(128.5))
+
+    @classmethod
+    def from_keypoints(cls, tail: F64, tip: F64) -> ArcModel:
+        """The arc of a :func:`bopsurg.needle.needle_mesh` model from its tail and tip (mm).
+
+        The tail-cap centre lies on the centre line at angle 0 and the tip at the arc's end.
+        """
+        tail, tip = np.asarray(tail, float), np.asarray(tip, float)
+        radius = float(np.hypot(tail[0], tail[1]))
+        arc = float(np.arctan2(tip[1], tip[0]) % (2 * np.pi))
+        if not (radius > 0 and arc > 0):
+            raise ValueError(f"keypoints do not describe an arc (tail {tail}, tip {tip})")
+        return cls(radius=radius, arc_rad=arc)
+
+    def points(self, n: int) -> F64:
+        """(n, 3) centre-line points from tail to tip, mm."""
+        s = np.linspace(0.0, self.arc_rad, n)
+        return np.stack([self.radius * np.cos(s), self.radius * np.sin(s), np.zeros(n)], axis=1)
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """Foreground evidence of one ROI, on a square grid of image px.
+
+    Grid pixel (row i, col j) sits at image ``(x0 + j·step, y0 + i·step)`` (OpenCV pixel
+    centres), the convention of :func:`bopsurg.models.pose.roi.roi_grid_to_image`.
+
+    Attributes:
+        points: (N, 2) image px of the foreground grid pixels used by the reverse term.
+        dist: (S, S) distance (image px) of every grid pixel to the nearest foreground pixel.
+        grad: (2, S, S) its gradient along image x and y (per image px).
+        origin: (2,) image px of grid pixel (0, 0).
+        step: image px per grid pixel.
+    """
+
+    points: F64
+    dist: F64
+    grad: F64
+    origin: F64
+    step: float
+
+    @classmethod
+    def from_mask(
+        cls, mask: NDArray[np.bool_], origin: F64, step: float, max_points: int = 400
+    ) -> Evidence:
+        """Evidence from a boolean foreground grid; at most ``max_points`` pixels, evenly
+        strided in scan order (deterministic) for the reverse term."""
+        import cv2  # the core's dependency; imported here to keep module import light
+
+        mask = np.asarray(mask, bool)
+        rows, cols = np.nonzero(mask)
+        if len(rows) > max_points:
+            keep = np.linspace(0, len(rows) - 1, max_points).round().astype(np.int64)
+            rows, cols = rows[keep], cols[keep]
+        origin = np.asarray(origin, float)
+        points = origin + step * np.stack([cols, rows], axis=1).astype(np.float64)
+        if mask.any():
+            bg = (~mask).astype(np.uint8)
+            dist = cv2.distanceTransform(bg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(float)
+        else:
+            dist = np.full(mask.shape, float(max(mask.shape)))
+        dist *= step
+        gy, gx = np.gradient(dist, step)
+        return cls(points, dist, np.stack([gx, gy]), origin, float(step))
+
+    @property
+    def size(self) -> int:
+        """Number of foreground pixels in the reverse term."""
+        return int(self.points.shape[0])
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Knobs of :func:`refine_pose` (px for scales)."""
+
+    samples: int = 40  # centre-line points of the model polyline
+    iterations: int = 12
+    scale_reverse: float = 2.0  # Cauchy scale of the evidence → line distances, px
+    # Geman-McClure (redescending) scale of the line → evidence distances, px: a centre-line
+    # sample behind an occluder lies far from the visible evidence and must neither cost
+    # more the farther it is nor pull the arc; a Cauchy loss still pulls with force ~1/r,
+    # which shrinks and shifts the arc towards the visible part. Started at the true pose on
+    # ground-truth visible masks, without prior, the median depth drift is 5.8 mm with
+    # Cauchy at 3 px, 4.3 mm with this loss at 3 px, 3.0 mm at 1.5 px (the rest is arcs
+    # seen edge-on, where the image does not fix the depth and the prior must)
+    scale_forward: float = 1.5
+    forward_weight: float = 1.0  # weight of the forward term's mean against the reverse one
+    lambda0: float = 1e-3  # initial LM damping (relative to the diagonal)
+    mirror_start: bool = False  # also start from the tilt-mirrored pose
+    # Gaussian prior around the start (the network's pose, its typical errors): the image pins
+    # the arc's projection, not its depth when the arc is seen edge-on, where depth and the
+    # rotation in the arc's plane trade off; the prior keeps those directions where they were
+    prior_deg: float = 8.0
+    prior_mm: tuple[float, float, float] = (1.5, 1.5, 4.0)  # camera x, y, z
+    prior_weight: float = 0.3  # against the mean image cost (px²-like units)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Outcome of one fit: the pose (the start's when not ``improved``) and the costs."""
+
+    R: F64
+    t: F64
+    cost: float
+    start_cost: float
+    improved: bool
+
+
+def _cauchy(r: F64, c: float) -> tuple[F64, F64]:
+    """Cauchy loss ρ(r) = c²/2 · log(1 + (r/c)²) and its IRLS weight ρ'(r)/r."""
+    q = (r / c) ** 2
+    return 0.5 * c * c * np.log1p(q), 1.0 / (1.0 + q)
+
+
+def _geman_mcclure(r: F64, c: float) -> tuple[F64, F64]:
+    """Geman-McClure loss ρ(r) = c²/2 · r²/(c² + r²) and its IRLS weight ρ'(r)/r.
+
+    Redescending: a residual far beyond ``c`` costs a constant and pulls with ~zero force.
+    """
+    q = (r / c) ** 2
+    return 0.5 * c * c * q / (1.0 + q), 1.0 / (1.0 + q) ** 2
+
+
+def _skew(v: F64) -> F64:
+    """(..., 3) → (..., 3, 3) cross-product matrices."""
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack(
+        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    )
+
+
+def _exp_so3(w: F64) -> F64:
+    """(..., 3) rotation vectors → (..., 3, 3) rotations (Rodrigues)."""
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    Kx = _skew(w)
+    small = theta < 1e-12
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0, np.sin(th) / th)
+    b = np.where(small, 0.5, (1.0 - np.cos(th)) / th**2)
+    return np.eye(3) + a * Kx + b * (Kx @ Kx)
+
+
+def _bilinear(grid: F64, xy: F64) -> F64:
+    """Sample (..., S, S) grids at (B, M, 2) grid coordinates (clamped to the border)."""
+    S = grid.shape[-1]
+    x = np.clip(xy[..., 0], 0.0, S - 1.0)
+    y = np.clip(xy[..., 1], 0.0, S - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), S - 2)
+    y0 = np.minimum(np.floor(y).astype(np.int64), S - 2)
+    fx, fy = x - x0, y - y0
+    g00, g01 = grid[..., y0, x0], grid[..., y0, x0 + 1]
+    g10, g11 = grid[..., y0 + 1, x0], grid[..., y0 + 1, x0 + 1]
+    return (g00 * (1 - fx) + g01 * fx) * (1 - fy) + (g10 * (1 - fx) + g11 * fx) * fy
+
+
+class _Problem:
+    """Residuals, costs and Jacobians for a batch of poses against one evidence."""
+
+    def __init__(self, model: F64, ev: Evidence, K: F64, s: FitSettings) -> None:
+        self.model, self.ev, self.K, self.s = model, ev, K, s
+        self.fx, self.fy = K[0, 0], K[1, 1]
+
+    def project(self, R: F64, t: F64) -> tuple[F64, F64, F64]:
+        """Camera points (B, M, 3), their object-centred part R·X (B, M, 3), pixels (B, M, 2)."""
+        rx = np.einsum("bij,mj->bmi", R, self.model)
+        X = rx + t[:, None, :]
+        z = np.maximum(X[..., 2], 1e-6)
+        uv = np.stack(
+            [
+                self.fx * X[..., 0] / z + self.K[0, 1] * X[..., 1] / z + self.K[0, 2],
+                self.fy * X[..., 1] / z + self.K[1, 2],
+            ],
+            -1,
+        )
+        return X, rx, uv
+
+    def jac_points(self, X: F64, rx: F64) -> F64:
+        """d(pixel)/d(ω, δt) of each model point, (B, M, 2, 6) for X → exp(ω)·rx + t + δt."""
+        z = np.maximum(X[..., 2], 1e-6)
+        P = np.zeros((*X.shape[:-1], 2, 3))
+        P[..., 0, 0] = self.fx / z
+        P[..., 0, 1] = self.K[0, 1] / z
+        P[..., 0, 2] = -(self.fx * X[..., 0] + self.K[0, 1] * X[..., 1]) / z**2
+        P[..., 1, 1] = self.fy / z
+        P[..., 1, 2] = -self.fy * X[..., 1] / z**2
+        dX = np.concatenate([-_skew(rx), np.broadcast_to(np.eye(3), (*X.shape[:-1], 3, 3))], -1)
+        return P @ dX
+
+    def evaluate(
+        self, R: F64, t: F64, with_jacobian: bool
+    ) -> tuple[F64, F64 | None, F64 | None, F64 | None]:
+        """Robust image cost (B,) and, with the Jacobian, residuals (B, N+M), IRLS weights and
+        J (B, N+M, 6)."""
+        s, ev = self.s, self.ev
+        X, rx, uv = self.project(R, t)
+        e = ev.points  # (N, 2)
+        n, m = e.shape[0], uv.shape[1]
+        # nearest centre-line sample, then the closest point on its two adjacent segments:
+        # O(N·M) small arithmetic instead of a point-to-every-segment distance
+        d2s = (e**2).sum(-1)[None, :, None] + (uv**2).sum(-1)[:, None, :]
+        d2s = d2s - 2.0 * np.einsum("nk,bmk->bnm", e, uv)
+        k0 = d2s.argmin(-1)  # (B, N)
+        seg = np.clip(np.stack([k0 - 1, k0], -1), 0, m - 2)  # (B, N, 2) candidate segments
+        bi = np.arange(len(R))[:, None, None]
+        a, b = uv[bi, seg], uv[bi, seg + 1]  # (B, N, 2, 2)
+        ab = b - a
+        ap = e[None, :, None, :] - a
+        tau = np.clip((ap * ab).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12), 0.0, 1.0)
+        diff = ap - tau[..., None] * ab
+        d2 = (diff**2).sum(-1)
+        pick = d2.argmin(-1)[..., None]  # (B, N, 1)
+        d_rev = np.sqrt(np.take_along_axis(d2, pick, -1)[..., 0])
+        grid_xy = (uv - ev.origin) / ev.step
+        d_fwd = _bilinear(ev.dist, grid_xy)
+        rho_r, w_r = _cauchy(d_rev, s.scale_reverse)
+        rho_f, w_f = _geman_mcclure(d_fwd, s.scale_forward)
+        cost = rho_r.mean(-1) + s.forward_weight * rho_f.mean(-1)
+        if not with_jacobian:
+            return cost, None, None, None
+        # reverse: r = û·(e − c) with c the closest point (moving with the pose) and û the
+        # segment normal towards e, or the direction from c where c is an end of the arc
+        k = np.take_along_axis(seg, pick, -1)[..., 0]  # (B, N) chosen segment
+        tk = np.take_along_axis(tau, pick, -1)  # (B, N, 1)
+        dv = np.take_along_axis(diff, pick[..., None], -2)[..., 0, :]  # e − c, (B, N, 2)
+        sv = np.take_along_axis(ab, pick[..., None], -2)[..., 0, :]
+        Jp = self.jac_points(X, rx)  # (B, M, 2, 6)
+        bj = np.arange(len(R))[:, None]
+        Jc = (1 - tk[..., None]) * Jp[bj, k] + tk[..., None] * Jp[bj, k + 1]  # (B, N, 2, 6)
+        normal = np.stack([-sv[..., 1], sv[..., 0]], -1)
+        normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+        normal *= np.where((normal * dv).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+        interior = (tk > 0) & (tk < 1)
+        unit = dv / np.maximum(d_rev[..., None], 1e-9)
+        u_hat = np.where(interior | (d_rev[..., None] < 1e-9), normal, unit)
+        J_rev = -np.einsum("bnk,bnkp->bnp", u_hat, Jc)
+        # forward: r = dist(uv); dr/dp = ∇dist · d(uv)/dp
+        g = np.stack([_bilinear(ev.grad[0], grid_xy), _bilinear(ev.grad[1], grid_xy)], -1)
+        J_fwd = np.einsum("bmk,bmkp->bmp", g, Jp)
+        r = np.concatenate([d_rev, d_fwd], 1)
+        w = np.concatenate([w_r / n, s.forward_weight * w_f / m], 1)
+        return cost, r, w, np.concatenate([J_rev, J_fwd], 1)
+
+
+def _log_so3(R: F64) -> F64:
+    """(3, 3) rotation → rotation vector (angles below π)."""
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-9:
+        return 0.5 * v
+    return v * theta / (2.0 * np.sin(theta)) if theta < np.pi - 1e-6 else v * 0.0 + np.pi * _axis(R)
+
+
+def _axis(R: F64) -> F64:
+    """Rotation axis of a half-turn."""
+    _, V = np.linalg.eigh(0.5 * (R + R.T))
+    return V[:, -1]
+
+
+def mirror_pose(R: F64, t: F64) -> F64:
+    """The rotation whose arc plane is ``R``'s mirrored through the line of sight to ``t``.
+
+    A circle tilted by +θ or −θ about an axis across the line of sight projects to (almost)
+    the same ellipse; this is the other branch of that two-fold ambiguity: the plane normal
+    n goes to ``2(n·v)v − n`` (v the unit line of sight), by the smallest rotation.
+    """
+    v = t / np.linalg.norm(t)
+    n = R[:, 2]
+    n2 = 2.0 * (n @ v) * v - n
+    axis = np.cross(n, n2)
+    s, c = np.linalg.norm(axis), float(np.clip(n @ n2, -1.0, 1.0))
+    if s < 1e-9:  # normal along the line of sight: the mirror is the pose itself
+        return R.copy()
+    return _exp_so3(axis / s * np.arctan2(s, c)) @ R
+
+
+def refine_pose(
+    R_init: F64,
+    t_init: F64,
+    K: F64,
+    evidence: Evidence,
+    arc: ArcModel,
+    settings: FitSettings | None = None,
+) -> FitResult:
+    """Fit the arc's pose to ``evidence``, starting from ``(R_init, t_init)`` (and its mirror).
+
+    Args:
+        R_init: (3, 3) starting rotation, model → camera.
+        t_init: (3,) starting translation, mm.
+        K: (3, 3) intrinsics, px.
+        evidence: the ROI's foreground evidence.
+        arc: the needle's centre line.
+        settings: fit knobs (defaults when None).
+
+    Returns:
+        The fitted pose when it beats the start's cost (``improved``), else the start.
+        Deterministic; never NaN (a non-finite fit returns the start).
+    """
+    s = settings or FitSettings()
+    R_init, t_init, K = np.asarray(R_init, float), np.asarray(t_init, float), np.asarray(K, float)
+    if evidence.size < MIN_EVIDENCE or not (
+        np.isfinite(R_init).all() and np.isfinite(t_init).all()
+    ):
+        return FitResult(R_init, t_init, float("inf"), float("inf"), False)
+    prob = _Problem(arc.points(s.samples), evidence, K, s)
+    starts = np.stack([R_init] + ([mirror_pose(R_init, t_init)] if s.mirror_start else []))
+    # x = (ω, δt): R = exp(ω)·R_start, t = t_init + δt; the prior pulls x towards the start's
+    # own (ω = 0 for the first start; the mirror pays its rotation like any other)
+    b = len(starts)
+    sigma = np.array([np.deg2rad(s.prior_deg)] * 3 + list(s.prior_mm), float)
+    sq = np.sqrt(s.prior_weight) / sigma  # prior residual = sq · (x − x_prior)
+    x_prior = np.zeros((b, 6))
+    if b > 1:
+        x_prior[1, :3] = -_log_so3(starts[1] @ R_init.T)
+
+    def total(x: F64) -> tuple[F64, F64, F64, F64]:
+        R, t = _exp_so3(x[:, :3]) @ starts, t_init + x[:, 3:]
+        c, r, w, J = prob.evaluate(R, t, True)
+        rp = sq * (x - x_prior)
+        return c + 0.5 * (rp**2).sum(-1), r, w, J
+
+    x = np.zeros((b, 6))
+    lam = np.full(b, s.lambda0)
+    cost, r, w, J = total(x)
+    start_cost = float(cost[0])
+    prior_H = np.diag(sq**2)
+    for _ in range(s.iterations):
+        JtW = J.transpose(0, 2, 1) * w[:, None, :]
+        H = JtW @ J + prior_H
+        grad = (JtW @ r[..., None])[..., 0] + sq**2 * (x - x_prior)
+        diag = np.einsum("bii->bi", H)
+        A = H + (lam[:, None] * diag)[..., None] * np.eye(6)
+        x_new = x - np.linalg.solve(A, grad[..., None])[..., 0]
+        c_new, r_new, w_new, J_new = total(x_new)
+        better = np.isfinite(c_new) & (c_new < cost)
+        x = np.where(better[:, None], x_new, x)
+        cost = np.where(better, c_new, cost)
+        r = np.where(better[:, None], r_new, r)
+        w = np.where(better[:, None], w_new, w)
+        J = np.where(better[:, None, None], J_new, J)
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+    best = int(np.argmin(cost))
+    R_best = _exp_so3(x[best, :3]) @ starts[best]
+    t_best = t_init + x[best, 3:]
+    ok = bool(np.isfinite(cost[best]) and cost[best] < start_cost)
+    ok = ok and bool(np.isfinite(R_best).all() and np.isfinite(t_best).all())
+    if not ok:
+        return FitResult(R_init, t_init, start_cost, start_cost, False)
+    U, _, Vt = np.linalg.svd(R_best)
+    return FitResult(U @ Vt, t_best, float(cost[best]), start_cost, True)

@@ -1,0 +1,134 @@
+"""The refinement stage of the ``gdrnet`` estimator: evidence at full resolution, then the fit.
+
+Per ROI: the segmenter (:mod:`.seghead`) predicts the needle's visible mask on a square grid
+of about one image px around the detection, and :func:`.fit.refine_pose` fits the exact arc
+to it, starting from the pose head's estimate; a fit that does not lower its own cost keeps
+the pose head's pose.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bopsurg.errors import BopsurgError
+from bopsurg.models.checkpoint import load_checkpoint, load_weights
+from bopsurg.models.pose.roi import crop
+from bopsurg.models.refine.fit import ArcModel, Evidence, FitSettings, refine_pose
+from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
+
+#: Foreground threshold on the segmenter's probability.
+MASK_THRESHOLD = 0.5
+
+#: Evidence source: (image (1, 3, H, W) float in [0, 1], centres (n, 2) px, sides (n,) px,
+#: grid side S) → (n, S, S) foreground probabilities on the ROI grids.
+EvidenceFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int], np.ndarray]
+
+
+class Segmenter:
+    """A loaded segmenter checkpoint (kind ``needle_seg``) and the arc it was trained for."""
+
+    def __init__(self, path: str | Path, device: torch.device) -> None:
+        state, info = load_checkpoint(path, "needle_seg")
+        try:
+            self.cfg = SegConfig.from_dict(info["config"])
+            arc = info["meta"]["arc"]
+            self.arc = ArcModel(radius=float(arc["radius"]), arc_rad=float(arc["arc_rad"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise BopsurgError(
+                f"{Path(path).with_suffix('.json')}: bad segmenter config ({err})"
+            ) from err
+        self.net = NeedleSegNet(self.cfg)
+        load_weights(self.net, state, path)
+        self.net.to(device).eval()
+        self.device = device
+
+    @torch.inference_mode()
+    def __call__(
+        self, image: torch.Tensor, centre: torch.Tensor, side: torch.Tensor, size: int
+    ) -> np.ndarray:
+        """Foreground probabilities (n, size, size) of the ROIs (see :data:`EvidenceFn`)."""
+        index = torch.zeros(len(centre), dtype=torch.long, device=image.device)
+        roi = crop(image, centre, side, size, "bilinear", index=index)
+        return torch.sigmoid(self.net(roi))[:, 0].float().cpu().numpy()
+
+
+@dataclass
+class RefineStats:
+    """How many ROIs the fit improved, and how many kept the network's pose."""
+
+    refined: int = 0
+    kept: int = 0
+
+
+class NeedleRefiner:
+    """Refines pose-head estimates of the needle against full-resolution evidence.
+
+    Args:
+        evidence: where the foreground comes from (a :class:`Segmenter`, or e.g. GT masks in
+            a bench).
+        arc: the needle's centre line.
+        grid: evidence grid side S, px (the segmenter's ROI side).
+        pad: grid side = pad · max(w, h) of the detection box.
+        settings: fit knobs.
+    """
+
+    def __init__(
+        self,
+        evidence: EvidenceFn,
+        arc: ArcModel,
+        grid: int,
+        pad: float = 1.5,
+        settings: FitSettings | None = None,
+    ) -> None:
+        self.evidence, self.arc, self.grid, self.pad = evidence, arc, grid, pad
+        self.settings = settings or FitSettings()
+        self.stats = RefineStats()
+
+    @classmethod
+    def from_checkpoint(
+        cls, path: str | Path, device: torch.device, settings: FitSettings | None = None
+    ) -> NeedleRefiner:
+        seg = Segmenter(path, device)
+        return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings)
+
+    def grids(self, box_xywh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Grid centre (n, 2) px and side (n,) px of boxes (x, y, w, h) in pixel-centre px."""
+        centre = box_xywh[:, :2] + 0.5 * box_xywh[:, 2:]
+        return centre, self.pad * box_xywh[:, 2:].max(dim=1).values.clamp(min=1.0)
+
+    def __call__(
+        self,
+        image: torch.Tensor,
+        K: np.ndarray,
+        box_xywh: torch.Tensor,
+        R: np.ndarray,
+        t: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Refined (R (n, 3, 3), t (n, 3) mm) and which ROIs changed (n,) bool.
+
+        Args:
+            image: (1, 3, H, W) float RGB in [0, 1].
+            K: (3, 3) intrinsics, px.
+            box_xywh: (n, 4) boxes (x, y, w, h), pixel-centre px.
+            R, t: the pose head's estimates, float64.
+        """
+        centre, side = self.grids(box_xywh)
+        prob = self.evidence(image, centre, side, self.grid)
+        c_np = centre.detach().cpu().double().numpy()
+        s_np = side.detach().cpu().double().numpy()
+        R_out, t_out = R.copy(), t.copy()
+        changed = np.zeros(len(R), dtype=bool)
+        for i in range(len(R)):  # one small least-squares problem per ROI
+            step = s_np[i] / self.grid
+            origin = c_np[i] - 0.5 * self.grid * step
+            ev = Evidence.from_mask(prob[i] > MASK_THRESHOLD, origin, step)
+            res = refine_pose(R[i], t[i], K, ev, self.arc, self.settings)
+            R_out[i], t_out[i], changed[i] = res.R, res.t, res.improved
+        self.stats.refined += int(changed.sum())
+        self.stats.kept += int((~changed).sum())
+        return R_out, t_out, changed
