@@ -40,6 +40,10 @@ def run_coco(args: argparse.Namespace) -> int:
     write_text(out / "scores.json", json.dumps({**scores, "meta": meta}, indent=2) + "\n")
     width = max(len(k) for k in scores)
     print("\n".join(f"{k:<{width}}  {v:.4f}" for k, v in scores.items()))
+    if getattr(args, "bootstrap", 0):
+        print("(no 95 % intervals for the COCO keys: --bootstrap resamples pose results only)")
+    if getattr(args, "figures", False):
+        print("(--figures draws pose results only: nothing to draw for a COCO results JSON)")
     print(
         f"\nwrote {out / 'scores.json'} ({len(results)} results, {time.perf_counter() - t0:.1f} s)"
     )
