@@ -28,10 +28,10 @@ the same bootstrap replicates (paired: the same images drawn for both methods), 
 what separates a real difference from the luck of the test set.
 
 For every number of the paper's table (mean, std, median of RE / TE / MSSD), the recalls
-at absolute thresholds, ADD / ADD-S AUC and, when evaluated, every BOP24/BOP25 score:
-both values, the difference (other - baseline), its 95 %
-interval, and the two-sided paired bootstrap p-value of "no difference". An interval
-that excludes 0 (p < 0.05) is a difference the test set supports.
+at absolute thresholds, ADD / ADD-S AUC, the BOP19 ARs and, when evaluated, every
+BOP24/BOP25 score: both values, the difference (other - baseline), its 95 % interval,
+and the two-sided paired bootstrap p-value of "no difference". An interval that excludes
+0 (p < 0.05) is a difference the test set supports.
 
 Writes into --out: compare.json, and compare.png (needs matplotlib: bopsurg[figures]).
 
@@ -55,7 +55,13 @@ def register(sub: Subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Compare every evaluation with the first one; print the table, write the files."""
     from bopsurg.atomic import write_text
-    from bopsurg.evaluation.bootstrap import compare_samples, json_strict
+    from bopsurg.evaluation.bootstrap import (
+        BOP19_SAMPLES_FILENAME,
+        compare_bop19,
+        compare_samples,
+        json_strict,
+        load_bop19_counts,
+    )
     from bopsurg.evaluation.summary_ci import (
         TABLE_SAMPLES_FILENAME,
         compare_tables,
@@ -82,6 +88,10 @@ def run(args: argparse.Namespace) -> int:
             res = compare_tables(base_table, other_table, args.bootstrap, args.seed, args.ci_unit)
             if base is not None and other is not None:
                 res |= compare_samples(base, other, args.bootstrap, args.seed, args.ci_unit)
+            base19 = load_bop19_counts(base_dir / BOP19_SAMPLES_FILENAME)
+            other19 = load_bop19_counts(other_dir / BOP19_SAMPLES_FILENAME)
+            if base19 and other19:
+                res |= compare_bop19(base19, other19, args.bootstrap, args.seed, args.ci_unit)
         except BopsurgError as err:
             raise BopsurgError(f"{base_dir} vs {other_dir}: {err}") from None
         report["comparisons"][str(other_dir)] = {k: asdict(c) for k, c in res.items()}  # type: ignore[index]
@@ -110,15 +120,16 @@ def _table(base_dir: Path, rows: list[Compared], replicates: int) -> str:
     """The printed comparison (a p-value of 0 is below the bootstrap's resolution)."""
     lines = []
     for other_dir, res in rows:
+        w = max([20, *(len(k) + 2 for k in res)])
         lines += [
             f"{other_dir} - {base_dir}:",
-            f"  {'score':<20}{'baseline':>10}{'other':>10}{'diff':>10}"
+            f"  {'score':<{w}}{'baseline':>10}{'other':>10}{'diff':>10}"
             f"{'95 % interval':>22}{'p':>8}",
         ]
         for key, c in res.items():
             ci = f"[{c.ci[0]:+.4f}, {c.ci[1]:+.4f}]"
             p = f"<{1 / replicates:.2g}" if c.p_value == 0 else f"{c.p_value:.3f}"
-            lines.append(f"  {key:<20}{c.a:>10.4f}{c.b:>10.4f}{c.diff:>+10.4f}{ci:>22}{p:>8}")
+            lines.append(f"  {key:<{w}}{c.a:>10.4f}{c.b:>10.4f}{c.diff:>+10.4f}{ci:>22}{p:>8}")
     return "\n".join(lines)
 
 

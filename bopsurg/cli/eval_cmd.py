@@ -48,9 +48,11 @@ Writes into --out:
                 bop19_average_recall; bop19_average_time_per_image; per-threshold details;
                 BOP24/25 6D-detection AP (--task bop24): bop24_mAP_mssd, bop24_mAP_mssd_mm
                 (MSSD 2-20 mm), bop24_mAP_mspd, bop24_mAP, bop25_mAP, bop25_mAP_mm;
-                ci95: their 95 % bootstrap intervals (--bootstrap N, --ci-unit image|scene)
-  bootstrap_table.npz, bootstrap_bop24.npz  what the intervals are computed from (the
-                table's GT instances, the BOP24 rankings), for 'bopsurg compare'
+                ci95: 95 % bootstrap intervals of the BOP19 ARs and BOP24/25 keys
+                (--bootstrap N, --ci-unit image|scene)
+  bootstrap_table.npz, bootstrap_bop19.npz, bootstrap_bop24.npz  what the intervals are
+                computed from (the table's GT instances, BOP19 hits per image, the BOP24
+                rankings), for 'bopsurg compare'
 
 Matching for errors.csv and the table: in each image, estimates in decreasing score order
 take the not-yet-matched GT instance of their object with the smallest MSSD (no threshold).
@@ -217,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
     }
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
-    write_intervals(result.gt_rows, det, args)  # bootstrap intervals, compare's samples
+    write_intervals(result.gt_rows, det, args, result.curves)  # intervals, compare's samples
     if args.figures:
         from bopsurg.viz.figures import figures_of_evaluation
 

@@ -14,11 +14,15 @@ import pandas as pd
 
 from bopsurg.atomic import write_text
 from bopsurg.evaluation.bootstrap import (
+    BOP19_SAMPLES_FILENAME,
     SAMPLES_FILENAME,
     DetectionSamples,
+    bop19_intervals,
     confidence_intervals,
     json_strict,
+    save_bop19_counts,
 )
+from bopsurg.evaluation.bop19 import RecallCurve
 from bopsurg.evaluation.bop24 import DetectionEvaluation
 from bopsurg.evaluation.summary_ci import (
     TABLE_SAMPLES_FILENAME,
@@ -29,15 +33,20 @@ from bopsurg.evaluation.summary_ci import (
 
 
 def write_intervals(
-    gt_rows: pd.DataFrame, det: DetectionEvaluation | None, args: argparse.Namespace
+    gt_rows: pd.DataFrame,
+    det: DetectionEvaluation | None,
+    args: argparse.Namespace,
+    curves: dict[str, RecallCurve] | None = None,
 ) -> None:
     """Save the BOP24 bootstrap samples (for ``bopsurg compare``) and, with ``--bootstrap N``,
     add ``ci95`` and ``bootstrap`` to ``summary.json`` (the paper's table) and ``scores.json``
-    (BOP24/BOP25 keys) and print the intervals."""
+    (BOP19 ARs from ``curves``, BOP24/BOP25 keys) and print the intervals."""
     out = Path(args.out)
     samples = DetectionSamples.from_evaluation(det) if det is not None else None
     if samples is not None:
         samples.save(out / SAMPLES_FILENAME)
+    if curves:
+        save_bop19_counts(out / BOP19_SAMPLES_FILENAME, curves)
     summary = json.loads((out / "summary.json").read_text())
     save_table_rows(out / TABLE_SAMPLES_FILENAME, table_rows(gt_rows, float(summary["min_visib"])))
     if args.bootstrap == 0:
@@ -62,12 +71,22 @@ def write_intervals(
             for k, (lo, hi) in table_ci["recall"].items()
         )
     )
+    scores_ci: dict[str, tuple[float, float]] = {}
+    if curves:
+        bop19_ci = bop19_intervals(curves, args.bootstrap, seed=args.seed, unit=args.ci_unit)
+        scores = json.loads((out / "scores.json").read_text())
+        print("  BOP19 6D localization:")
+        for key, (lo, hi) in bop19_ci.items():
+            print(f"    {key:<32}{scores[key]:.4f}  [{lo:.4f}, {hi:.4f}]")
+        scores_ci.update(bop19_ci)
     if samples is not None and det is not None:
         ci = confidence_intervals(samples, args.bootstrap, seed=args.seed, unit=args.ci_unit)
-        _add_to_json(out / "scores.json", {"ci95": json_strict(ci), "bootstrap": meta})
         print("  BOP24/BOP25 6D detection:")
         for key, (lo, hi) in ci.items():
             print(f"    {key:<32}{det.scores[key]:.4f}  [{lo:.4f}, {hi:.4f}]")
+        scores_ci.update(ci)
+    if scores_ci:
+        _add_to_json(out / "scores.json", {"ci95": json_strict(scores_ci), "bootstrap": meta})
     print(f"  (bootstrap {time.perf_counter() - t0:.2f} s)")
 
 

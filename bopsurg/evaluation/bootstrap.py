@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from bopsurg.atomic import atomic_path
 from bopsurg.errors import BopsurgError, InputError
+from bopsurg.evaluation.bop19 import RecallCurve
 from bopsurg.evaluation.bop24 import RECALL_POINTS, DetectionEvaluation, score_keys
 from bopsurg.evaluation.options import CI_UNITS, DEFAULT_REPLICATES
 
@@ -247,6 +248,109 @@ def confidence_intervals(
     weights = resample_weights(resampling_units(samples.images, unit), replicates, seed)
     reps = replicate_scores(samples, weights)
     return {k: percentile_interval(v) for k, v in reps.items()}
+
+
+def bop19_replicates(curves: dict[str, RecallCurve], weights: F64) -> dict[str, F64]:
+    """The BOP19 scores under each row of image weights (B, M): ``bop19_average_recall_{name}``
+    per curve and, with VSD, ``bop19_average_recall``; (B,) each.
+
+    A recall is a ratio of sums over images (matched valid GTs / valid GTs), so a replicate
+    re-weights both sums; unit weights give the reported scores exactly. ``weights``' columns
+    are the images of the curves' ``image_ids`` (the same for every curve: the valid GTs).
+    """
+    out: dict[str, F64] = {}
+    for name, c in curves.items():
+        if c.image_hits is None or c.image_targets is None:
+            raise BopsurgError(f"the {name} recall curve has no per-image counts")
+        total = weights @ c.image_targets.astype(np.float64)  # (B,)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            recalls = (weights @ c.image_hits.T.astype(np.float64)) / total[:, None]  # (B, T)
+        recalls = np.where(total[:, None] > 0, recalls, 0.0)  # as the scorer: 0 without targets
+        out[f"bop19_average_recall_{name}"] = recalls.mean(axis=1)
+    if all(f"bop19_average_recall_{n}" in out for n in ("vsd", "mssd", "mspd")):
+        out["bop19_average_recall"] = np.mean(
+            [out[f"bop19_average_recall_{n}"] for n in ("vsd", "mssd", "mspd")], axis=0
+        )
+    return out
+
+
+def bop19_intervals(
+    curves: dict[str, RecallCurve], replicates: int, seed: int = 0, unit: str = "image"
+) -> dict[str, tuple[float, float]]:
+    """95 % bootstrap interval of each BOP19 average recall (resampling images or scenes)."""
+    first = next(iter(curves.values()), None)
+    if first is None or first.image_ids is None:
+        return {}
+    weights = resample_weights(resampling_units(first.image_ids, unit), replicates, seed)
+    return {k: percentile_interval(v) for k, v in bop19_replicates(curves, weights).items()}
+
+
+#: File in an evaluation folder with the BOP19 per-image counts (``bopsurg compare``).
+BOP19_SAMPLES_FILENAME = "bootstrap_bop19.npz"
+
+
+def save_bop19_counts(path: Path, curves: dict[str, RecallCurve]) -> None:
+    """Write the curves' per-image counts (atomically) for :func:`compare_bop19`."""
+    arrays: dict[str, Any] = {}
+    for name, c in curves.items():
+        if c.image_ids is None or c.image_targets is None or c.image_hits is None:
+            return
+        arrays |= {"image_ids": c.image_ids, "image_targets": c.image_targets}
+        arrays[f"hits_{name}"] = c.image_hits
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def load_bop19_counts(path: Path) -> dict[str, RecallCurve] | None:
+    """The per-image counts :func:`save_bop19_counts` wrote, as curves; None without the file.
+
+    Raises:
+        InputError: The file is not such an archive.
+    """
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            ids, targets = z["image_ids"], z["image_targets"]
+            hits = {k[5:]: z[k] for k in z.files if k.startswith("hits_")}
+    except (OSError, ValueError, KeyError) as err:
+        raise InputError(f"not a bopsurg BOP19 bootstrap archive ({err})", path=path) from None
+    curves = {}
+    for name, h in hits.items():
+        c = RecallCurve(name, [], [], [], int(targets.sum()))
+        c.image_ids, c.image_targets, c.image_hits = ids, targets, h
+        curves[name] = c
+    return curves
+
+
+def compare_bop19(
+    a: dict[str, RecallCurve],
+    b: dict[str, RecallCurve],
+    replicates: int = DEFAULT_REPLICATES,
+    seed: int = 0,
+    unit: str = "image",
+) -> dict[str, Comparison]:
+    """Paired bootstrap comparison of the BOP19 ARs of two evaluations of the same targets.
+
+    Raises:
+        BopsurgError: The evaluations are not on the same images with valid GTs.
+    """
+    ids_a, ids_b = next(iter(a.values())).image_ids, next(iter(b.values())).image_ids
+    if ids_a is None or ids_b is None or not np.array_equal(ids_a, ids_b):
+        raise BopsurgError(
+            "the evaluations' BOP19 targets are on different images: compare needs the same "
+            "dataset split and targets"
+        )
+    common = {k: a[k] for k in a if k in b}
+    ones = np.ones((1, len(ids_a)))
+    weights = resample_weights(resampling_units(ids_a, unit), replicates, seed)
+    b_common = {k: b[k] for k in common}
+    return paired_comparisons(
+        bop19_replicates(common, ones),
+        bop19_replicates(b_common, ones),
+        bop19_replicates(common, weights),
+        bop19_replicates(b_common, weights),
+    )
 
 
 @dataclass

@@ -74,6 +74,11 @@ class RecallCurve:
     targets_count: int
     taus: list[float] | None = None
     extra: dict[str, object] = field(default_factory=dict)
+    #: Per image with valid GTs, what the bootstrap intervals resample: (M, 2) scene_id,
+    #: im_id; (M,) valid GTs; (T, M) matched valid GTs at each threshold (recall order).
+    image_ids: NDArray[np.int64] | None = None
+    image_targets: NDArray[np.int64] | None = None
+    image_hits: NDArray[np.int64] | None = None
 
     @property
     def average_recall(self) -> float:
@@ -87,6 +92,7 @@ def recall_curve(
     valid_gt: NDArray[np.bool_],
     thresholds: tuple[float, ...],
     error_type: str,
+    gt_images: NDArray[np.int64] | None = None,
 ) -> RecallCurve:
     """Recall at each threshold for normalised pair errors.
 
@@ -97,11 +103,14 @@ def recall_curve(
         valid_gt: (G,) valid GT instances.
         thresholds: Correctness thresholds θ.
         error_type: Name, e.g. ``"mssd"``.
+        gt_images: (G, 2) scene_id, im_id of each GT: also count hits per image (for the
+            bootstrap intervals of the AR).
     """
     errs = np.atleast_2d(np.asarray(errors, dtype=np.float64))
     targets = int(np.count_nonzero(valid_gt))
     recalls: list[float] = []
     tps: list[int] = []
+    hit_rows: list[NDArray[np.bool_]] = []
     for row in errs:
         for th in thresholds:
             matched = greedy_match(
@@ -110,7 +119,33 @@ def recall_curve(
             tp = int(np.count_nonzero(matched[valid_gt] >= 0))
             tps.append(tp)
             recalls.append(tp / float(targets) if targets > 0 else 0.0)
-    return RecallCurve(error_type, list(thresholds), recalls, tps, targets)
+            hit_rows.append(matched[valid_gt] >= 0)
+    curve = RecallCurve(error_type, list(thresholds), recalls, tps, targets)
+    if gt_images is not None:
+        ids, inv = np.unique(gt_images[valid_gt], axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        curve.image_ids = ids.astype(np.int64).reshape(-1, 2)
+        curve.image_targets = np.bincount(inv, minlength=len(ids)).astype(np.int64)
+        curve.image_hits = np.array(
+            [np.bincount(inv, weights=h, minlength=len(ids)) for h in hit_rows], dtype=np.int64
+        ).reshape(len(hit_rows), len(ids))
+    return curve
+
+
+def merge_image_counts(merged: RecallCurve, parts: Sequence[RecallCurve]) -> None:
+    """Give ``merged`` the per-image counts of ``parts`` (curves of disjoint scenes), in image
+    order, so that the bootstrap draws the same replicates however the scenes were split."""
+    if not parts or any(p.image_ids is None for p in parts):
+        return
+    ids = np.concatenate([p.image_ids for p in parts if p.image_ids is not None])
+    order = np.lexsort((ids[:, 1], ids[:, 0]))
+    merged.image_ids = ids[order]
+    merged.image_targets = np.concatenate(
+        [p.image_targets for p in parts if p.image_targets is not None]
+    )[order]
+    merged.image_hits = np.concatenate(
+        [p.image_hits for p in parts if p.image_hits is not None], axis=1
+    )[:, order]
 
 
 def normalise_mssd(mssd: F64, te: F64, diameter: F64) -> F64:
@@ -231,17 +266,16 @@ def recall_curves(
     )
     errs["mssd"] = known.reindex(pd.MultiIndex.from_arrays([e_idx, g_idx])).to_numpy()
     diam = models.diameters(gt.obj_id[g_idx])
+    ims = np.stack([gt.scene_id, gt.im_id], axis=1).astype(np.int64)
+    mssd = normalise_mssd(errs["mssd"], errs["te"], diam)
+    mspd = normalise_mspd(errs["mspd"], gt.im_width[g_idx])
     curves = {
-        "mssd": recall_curve(
-            pairs, normalise_mssd(errs["mssd"], errs["te"], diam), valid, MSSD_THRESHOLDS, "mssd"
-        ),
-        "mspd": recall_curve(
-            pairs, normalise_mspd(errs["mspd"], gt.im_width[g_idx]), valid, MSPD_THRESHOLDS, "mspd"
-        ),
+        "mssd": recall_curve(pairs, mssd, valid, MSSD_THRESHOLDS, "mssd", ims),
+        "mspd": recall_curve(pairs, mspd, valid, MSPD_THRESHOLDS, "mspd", ims),
     }
     if vsd_inputs is not None:
         errors = vsd_errors(est, gt, e_idx, g_idx, diam, vsd_inputs)
-        curve = recall_curve(pairs, errors, valid, VSD_THRESHOLDS, "vsd")
+        curve = recall_curve(pairs, errors, valid, VSD_THRESHOLDS, "vsd", ims)
         curve.taus = list(VSD_TAUS)
         curve.extra["delta_mm"] = vsd_inputs.delta
         curves["vsd"] = curve

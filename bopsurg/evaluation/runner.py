@@ -299,6 +299,7 @@ def evaluate_distributed(
             first.taus,
             first.extra,
         )
+        bop19.merge_image_counts(curves[name], [p.curves[name] for p in parts])
     errors = pd.concat([p.errors for p in parts], ignore_index=True)
     gt_rows = pd.concat([p.gt_rows for p in parts], ignore_index=True)
     min_visib = float(options.get("min_visib", 0.3))  # type: ignore[arg-type]

@@ -10,18 +10,24 @@ import pytest
 
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.cli.main import main
-from bopsurg.errors import BopsurgError
+from bopsurg.errors import BopsurgError, InputError
 from bopsurg.evaluation import bop24
 from bopsurg.evaluation.bootstrap import (
     DetectionSamples,
+    bop19_intervals,
+    bop19_replicates,
+    compare_bop19,
     compare_samples,
     confidence_intervals,
+    load_bop19_counts,
     replicate_scores,
     resample_weights,
     resampling_units,
+    save_bop19_counts,
     weighted_ap,
 )
-from bopsurg.evaluation.runner import evaluate
+from bopsurg.evaluation.bop19 import RecallCurve
+from bopsurg.evaluation.runner import evaluate, evaluate_distributed
 from bopsurg.evaluation.summary_ci import (
     TABLE_SAMPLES_FILENAME,
     compare_tables,
@@ -29,6 +35,7 @@ from bopsurg.evaluation.summary_ci import (
     table_rows,
     weighted_median,
 )
+from bopsurg.executors import make_executor
 from tests.bopsurg.evaluation import bop24_oracle
 from tests.bopsurg.evaluation.test_bop24 import KEYS, _hand_dataset
 
@@ -173,6 +180,8 @@ def test_cli_eval_intervals_and_compare(tmp_path, capsys):
     assert scores["bootstrap"] == {"replicates": 200, "unit": "image", "seed": 4}
     lo, hi = scores["ci95"]["bop24_mAP"]
     assert lo <= scores["bop24_mAP"] <= hi
+    lo, hi = scores["ci95"]["bop19_average_recall_mssd"]
+    assert lo <= scores["bop19_average_recall_mssd"] <= hi
     assert "95 % interval" in capsys.readouterr().out
     summary = json.loads((tmp_path / "eval_r" / "summary.json").read_text())
     lo, hi = summary["ci95"]["table"]["mssd"]["median"]
@@ -200,6 +209,10 @@ def test_cli_eval_intervals_and_compare(tmp_path, capsys):
     assert t["mssd_median"]["diff"] == pytest.approx(t["mssd_median"]["b"] - t["mssd_median"]["a"])
     assert t["te_mean"]["b"] > t["te_mean"]["a"]
     assert "recall_mssd<5mm" in t
+    # BOP19 ARs are compared on the same images with valid GTs (the worse run misses one).
+    ar = t["bop19_average_recall_mssd"]
+    assert ar["b"] < ar["a"]
+    assert ar["diff"] == pytest.approx(ar["b"] - ar["a"])
 
 
 @pytest.mark.parametrize("seed", range(30))
@@ -244,3 +257,51 @@ def test_compare_tables_pairs_the_same_instances(case):
     assert c.ci == pytest.approx((1.0, 1.0))
     with pytest.raises(BopsurgError, match="different GT instances"):
         compare_tables(rows, rows.iloc[1:], 10)
+
+
+def test_bop19_replicate_hand_worked():
+    """Three images with 2, 1, 1 valid GTs; matched at two thresholds: 2, 0, 1 and 1, 1, 0.
+    Drawing image 0 twice, image 2 once and image 1 never: recalls (4 + 1) / 5 = 1 and
+    (2 + 0) / 5 = 0.4, so AR = 0.7; unit weights give the curve's own AR, 0.6."""
+    curve = RecallCurve("mssd", [0.1, 0.2], [0.75, 0.5], [3, 2], 4)
+    curve.image_ids = np.array([[1, 0], [1, 1], [2, 0]], dtype=np.int64)
+    curve.image_targets = np.array([2, 1, 1], dtype=np.int64)
+    curve.image_hits = np.array([[2, 0, 1], [1, 1, 0]], dtype=np.int64)
+    reps = bop19_replicates({"mssd": curve}, np.array([[2.0, 0.0, 1.0], [1.0, 1.0, 1.0]]))
+    assert reps["bop19_average_recall_mssd"] == pytest.approx([0.7, curve.average_recall])
+    assert "bop19_average_recall" not in reps  # the overall AR needs VSD too
+
+
+def test_bop19_unit_weights_give_the_ars_local_and_distributed(case):
+    ds, est, _, _ = case
+    local = evaluate(ds, est, progress=False)
+    ids = local.curves["mssd"].image_ids
+    assert ids is not None
+    reps = bop19_replicates(local.curves, np.ones((1, len(ids))))
+    for key, value in reps.items():
+        assert value[0] == pytest.approx(local.scores[key], abs=1e-15), key
+    split = evaluate_distributed(
+        ds, est, executor=make_executor("local", workers=2), progress=False
+    )
+    for name, curve in local.curves.items():
+        other = split.curves[name]
+        assert other.image_ids is not None
+        np.testing.assert_array_equal(other.image_ids, curve.image_ids)
+        np.testing.assert_array_equal(other.image_hits, curve.image_hits)
+    assert bop19_intervals(local.curves, 50, seed=1) == bop19_intervals(split.curves, 50, seed=1)
+
+
+def test_bop19_counts_round_trip_and_bad_archive(case, tmp_path):
+    ds, est, _, _ = case
+    curves = evaluate(ds, est, progress=False).curves
+    path = tmp_path / "b19.npz"
+    save_bop19_counts(path, curves)
+    back = load_bop19_counts(path)
+    assert back is not None
+    for name, c in curves.items():
+        np.testing.assert_array_equal(back[name].image_hits, c.image_hits)
+    assert compare_bop19(curves, back, 20)["bop19_average_recall_mssd"].diff == 0.0
+    assert load_bop19_counts(tmp_path / "missing.npz") is None
+    path.write_bytes(b"not an archive")
+    with pytest.raises(InputError, match="BOP19 bootstrap archive"):
+        load_bop19_counts(path)
