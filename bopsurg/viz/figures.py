@@ -16,6 +16,7 @@ so a notebook draws the same figures. matplotlib is imported on use
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,8 @@ def _pyplot() -> Any:
     try:
         import matplotlib
 
-        matplotlib.use("Agg")
+        if "matplotlib.pyplot" not in sys.modules:  # headless, unless a notebook chose already
+            matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
         raise BopsurgError("figures need matplotlib: pip install 'bopsurg[figures]'") from None
@@ -58,7 +60,12 @@ def save_figure(fig: Any, stem: Path) -> list[Path]:
 
 
 def gt_distributions(distance_mm: ArrayLike, visib_fract: ArrayLike, stem: Path) -> list[Path]:
-    """Fig. 2: histograms of the GT camera distance (mm) and visible fraction."""
+    """Fig. 2 written to ``stem.png`` and ``stem.pdf`` (:func:`plot_gt_distributions`)."""
+    return save_figure(plot_gt_distributions(distance_mm, visib_fract), stem)
+
+
+def plot_gt_distributions(distance_mm: ArrayLike, visib_fract: ArrayLike) -> Any:
+    """Fig. 2: histograms of the GT camera distance (mm) and visible fraction; the figure."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(8, 3))
     axes[0].hist(np.asarray(distance_mm, float), bins=30, color="C0")
@@ -67,7 +74,7 @@ def gt_distributions(distance_mm: ArrayLike, visib_fract: ArrayLike, stem: Path)
     axes[1].hist(np.asarray(visib_fract, float), bins=np.linspace(0, 1, 21), color="C1")
     axes[1].set_xlabel("visible fraction")
     fig.tight_layout()
-    return save_figure(fig, stem)
+    return fig
 
 
 def matched_errors(errors: pd.DataFrame, min_visib: float) -> pd.DataFrame:
@@ -76,7 +83,13 @@ def matched_errors(errors: pd.DataFrame, min_visib: float) -> pd.DataFrame:
 
 
 def error_histograms(errors: pd.DataFrame, min_visib: float, stem: Path) -> list[Path]:
-    """Fig. 4: histograms of RE, TE and MSSD with their medians (matched GT instances)."""
+    """Fig. 4 written to ``stem.png`` and ``stem.pdf`` (:func:`plot_error_histograms`)."""
+    return save_figure(plot_error_histograms(errors, min_visib), stem)
+
+
+def plot_error_histograms(errors: pd.DataFrame, min_visib: float) -> Any:
+    """Fig. 4: histograms of RE, TE and MSSD with their medians (errors.csv rows matched to
+    GT instances with ``visib_fract ≥ min_visib``); the figure."""
     plt = _pyplot()
     rows = matched_errors(errors, min_visib)
     fig, axes = plt.subplots(1, 3, figsize=(10, 3))
@@ -91,7 +104,7 @@ def error_histograms(errors: pd.DataFrame, min_visib: float, stem: Path) -> list
         ax.set_xlabel(ERROR_LABELS[col])
     axes[0].set_ylabel(f"GT instances (visib ≥ {min_visib:g})")
     fig.tight_layout()
-    return save_figure(fig, stem)
+    return fig
 
 
 def recall_curves(errors: pd.DataFrame, n_gt: int, min_visib: float, stem: Path) -> list[Path]:
