@@ -29,8 +29,9 @@ what separates a real difference from the luck of the test set.
 
 For every number of the paper's table (mean, std, median of RE / TE / MSSD), the recalls
 at absolute thresholds, ADD / ADD-S AUC, the BOP19 ARs and, when evaluated, every
-BOP24/BOP25 score: both values, the difference (other - baseline), its 95 % interval,
-and the two-sided paired bootstrap p-value of "no difference". An interval that excludes
+BOP24/BOP25 score and every COCO AP / AR (evaluations of the detector's COCO JSON):
+both values, the difference (other - baseline), its 95 % interval, and the two-sided
+paired bootstrap p-value of "no difference". An interval that excludes
 0 (p < 0.05) is a difference the test set supports.
 
 Writes into --out: compare.json, and compare.png (needs matplotlib: bopsurg[figures]).
@@ -55,26 +56,13 @@ def register(sub: Subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Compare every evaluation with the first one; print the table, write the files."""
     from bopsurg.atomic import write_text
-    from bopsurg.evaluation.bootstrap import (
-        BOP19_SAMPLES_FILENAME,
-        compare_bop19,
-        compare_samples,
-        json_strict,
-        load_bop19_counts,
-    )
-    from bopsurg.evaluation.summary_ci import (
-        TABLE_SAMPLES_FILENAME,
-        compare_tables,
-        load_table_rows,
-    )
+    from bopsurg.evaluation.bootstrap import json_strict
 
     if len(args.evals) < 2:
         raise BopsurgError("compare needs at least two evaluation folders")
     if args.bootstrap < 1:
         raise BopsurgError("--bootstrap: compare needs at least 1 replicate")
     base_dir = Path(args.evals[0])
-    base_table = load_table_rows(base_dir / TABLE_SAMPLES_FILENAME)
-    base = _bop24_samples(base_dir)
     report: dict[str, object] = {
         "baseline": str(base_dir),
         "bootstrap": {"replicates": args.bootstrap, "unit": args.ci_unit, "seed": args.seed},
@@ -82,16 +70,8 @@ def run(args: argparse.Namespace) -> int:
     }
     rows: list[Compared] = []
     for other_dir in map(Path, args.evals[1:]):
-        other_table = load_table_rows(other_dir / TABLE_SAMPLES_FILENAME)
-        other = _bop24_samples(other_dir)
         try:
-            res = compare_tables(base_table, other_table, args.bootstrap, args.seed, args.ci_unit)
-            if base is not None and other is not None:
-                res |= compare_samples(base, other, args.bootstrap, args.seed, args.ci_unit)
-            base19 = load_bop19_counts(base_dir / BOP19_SAMPLES_FILENAME)
-            other19 = load_bop19_counts(other_dir / BOP19_SAMPLES_FILENAME)
-            if base19 and other19:
-                res |= compare_bop19(base19, other19, args.bootstrap, args.seed, args.ci_unit)
+            res = compare_pair(base_dir, other_dir, args.bootstrap, args.seed, args.ci_unit)
         except BopsurgError as err:
             raise BopsurgError(f"{base_dir} vs {other_dir}: {err}") from None
         report["comparisons"][str(other_dir)] = {k: asdict(c) for k, c in res.items()}  # type: ignore[index]
@@ -106,6 +86,61 @@ def run(args: argparse.Namespace) -> int:
             written.append(png)
         print("\nwrote " + ", ".join(str(p) for p in written))
     return 0
+
+
+def compare_pair(
+    base_dir: Path, other_dir: Path, replicates: int, seed: int, unit: str
+) -> dict[str, Comparison]:
+    """Paired comparisons of every number both evaluation folders can be resampled for: the
+    paper's table, recalls and AUCs (pose results), BOP19 ARs, BOP24/BOP25 and COCO scores.
+
+    Raises:
+        BopsurgError: Nothing in common, or not the same targets.
+    """
+    from bopsurg.evaluation.bootstrap import (
+        BOP19_SAMPLES_FILENAME,
+        compare_bop19,
+        compare_samples,
+        load_bop19_counts,
+    )
+    from bopsurg.evaluation.coco_bootstrap import COCO_SAMPLES_FILENAME, CocoSamples, compare_coco
+    from bopsurg.evaluation.summary_ci import (
+        TABLE_SAMPLES_FILENAME,
+        compare_tables,
+        load_table_rows,
+    )
+
+    def both(name: str) -> bool:
+        return (base_dir / name).exists() and (other_dir / name).exists()
+
+    has_table = [(d / TABLE_SAMPLES_FILENAME).exists() for d in (base_dir, other_dir)]
+    if any(has_table) and not all(has_table):
+        missing = (other_dir if has_table[0] else base_dir) / TABLE_SAMPLES_FILENAME
+        raise BopsurgError(f"{missing}: missing (evaluate the pose results with this bopsurg)")
+    for d in (base_dir, other_dir):
+        if not (d / "scores.json").exists():
+            raise BopsurgError(f"{d}: not a folder written by 'bopsurg eval' (no scores.json)")
+    res: dict[str, Comparison] = {}
+    if both(TABLE_SAMPLES_FILENAME):
+        base_table = load_table_rows(base_dir / TABLE_SAMPLES_FILENAME)
+        other_table = load_table_rows(other_dir / TABLE_SAMPLES_FILENAME)
+        res |= compare_tables(base_table, other_table, replicates, seed, unit)
+    base, other = _bop24_samples(base_dir), _bop24_samples(other_dir)
+    if base is not None and other is not None:
+        res |= compare_samples(base, other, replicates, seed, unit)
+    base19 = load_bop19_counts(base_dir / BOP19_SAMPLES_FILENAME)
+    other19 = load_bop19_counts(other_dir / BOP19_SAMPLES_FILENAME)
+    if base19 and other19:
+        res |= compare_bop19(base19, other19, replicates, seed, unit)
+    if both(COCO_SAMPLES_FILENAME):
+        coco_a = CocoSamples.load(base_dir / COCO_SAMPLES_FILENAME)
+        coco_b = CocoSamples.load(other_dir / COCO_SAMPLES_FILENAME)
+        res |= compare_coco(coco_a, coco_b, replicates, seed, unit)
+    if not res:
+        raise BopsurgError(
+            "nothing to compare: the evaluations share no task (pose results vs COCO JSON?)"
+        )
+    return res
 
 
 def _bop24_samples(eval_dir: Path) -> DetectionSamples | None:

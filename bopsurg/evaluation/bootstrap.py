@@ -156,7 +156,8 @@ def weighted_ap(weights: F64, tp: NDArray[np.bool_], total: F64) -> F64:
     """101-point interpolated AP of one ranking under each row of weights.
 
     Args:
-        weights: (B, N) weight of each ranked estimate in each replicate.
+        weights: (B, N) weight of each ranked estimate in each replicate (float32 is exact
+            for bootstrap counts and halves the memory traffic; sums are taken in float64).
         tp: (N,) TP flags in ranking order.
         total: (B,) weighted target count (AP is NaN where 0).
 
@@ -171,8 +172,9 @@ def weighted_ap(weights: F64, tp: NDArray[np.bool_], total: F64) -> F64:
         # more precision, so it never raises an interpolated precision. Precision at a TP
         # counts every estimate up to it: sums of the weights between consecutive TPs.
         starts = np.r_[0, hits[:-1] + 1]
-        n_cum = np.cumsum(np.add.reduceat(weights[:, : hits[-1] + 1], starts, axis=1), axis=1)
-        tp_cum = np.cumsum(weights[:, hits], axis=1)
+        segments = np.add.reduceat(weights[:, : hits[-1] + 1], starts, axis=1)
+        n_cum = np.cumsum(segments, axis=1).astype(np.float64, copy=False)
+        tp_cum = np.cumsum(weights[:, hits], axis=1).astype(np.float64, copy=False)
         pre = np.divide(tp_cum, n_cum, out=np.zeros_like(tp_cum), where=n_cum > 0)
         best_after = np.maximum.accumulate(pre[:, ::-1], axis=1)[:, ::-1]
         first = _first_reaching(tp_cum, total)

@@ -35,6 +35,7 @@ from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.jsonio import load_json
 from bopsurg.bop.targets import ImageTarget
 from bopsurg.errors import BopsurgError, DatasetError, ResultsError
+from bopsurg.evaluation.coco_bootstrap import CocoSamples
 
 #: ``COCOeval.stats`` in order, under the reference's names.
 STATS = (
@@ -167,6 +168,20 @@ def evaluate_coco(
 ) -> dict[str, float]:
     """COCO scores of 2D results for the tasks ``coco-bbox`` and/or ``coco-segm``.
 
+    As :func:`evaluate_coco_samples`, without the bootstrap samples.
+    """
+    return evaluate_coco_samples(dataset, results, tasks, targets)[0]
+
+
+def evaluate_coco_samples(
+    dataset: BopDataset,
+    results: Sequence[dict[str, Any]],
+    tasks: Sequence[str],
+    targets: Sequence[ImageTarget] | None = None,
+) -> tuple[dict[str, float], CocoSamples | None]:
+    """COCO scores of 2D results for the tasks ``coco-bbox`` and/or ``coco-segm``, and what
+    their bootstrap intervals are computed from.
+
     Args:
         dataset: The split (its scenes need ``scene_gt_coco.json``).
         results: Loaded BOP COCO results (:func:`load_coco_results`).
@@ -175,12 +190,16 @@ def evaluate_coco(
             GT).
 
     Returns:
-        ``bop22_coco_<kind>_<stat>`` keys and ``bop22_coco_average_time_per_image``.
+        ``bop22_coco_<kind>_<stat>`` keys and ``bop22_coco_average_time_per_image``; the
+        per-image matches (:class:`~bopsurg.evaluation.coco_bootstrap.CocoSamples`) of the
+        evaluations that had results (None if none had).
     """
     coco_cls, cocoeval_cls, mask_utils = _coco()
     if targets is None:
         targets = dataset.image_targets()
     scores: dict[str, float] = {}
+    evaluated: list[tuple[str, Any]] = []
+    image_keys: list[tuple[int, int]] = []
     for task in tasks:
         for prefix, iou_type, box in EVALUATIONS[task]:
             gt, ids = merged_ground_truth(dataset, targets, box)
@@ -212,11 +231,15 @@ def evaluate_coco(
                     ev.accumulate()
                     ev.summarize()
                 values = [float(v) for v in ev.stats]
+                evaluated.append((prefix, ev))
+                key_of = {v: k for k, v in ids.items()}
+                image_keys = [key_of[i] for i in ev.params.imgIds]
             scores.update(
                 {f"bop22_coco_{prefix}_{s}": v for s, v in zip(STATS, values, strict=True)}
             )
     scores["bop22_coco_average_time_per_image"] = _average_time(results)
-    return scores
+    samples = CocoSamples.from_cocoevals(evaluated, image_keys) if evaluated else None
+    return scores, samples
 
 
 def _average_time(results: Sequence[dict[str, Any]]) -> float:
