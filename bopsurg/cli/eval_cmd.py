@@ -53,6 +53,9 @@ Writes into --out:
   bootstrap_table.npz, bootstrap_bop19.npz, bootstrap_bop24.npz  what the intervals are
                 computed from (the table's GT instances, BOP19 hits per image, the BOP24
                 rankings), for 'bopsurg compare'
+For a COCO results JSON instead: scores.json with bop22_coco_{{bbox,bbox_modal,segm}}_{{AP,
+AP50, AP75, AP_small, _medium, _large, AR1, AR10, AR100, AR_small, _medium, _large}}
+(pycocotools' numbers) and their ci95, and bootstrap_coco.npz (per-image matches).
 
 Matching for errors.csv and the table: in each image, estimates in decreasing score order
 take the not-yet-matched GT instance of their object with the smallest MSSD (no threshold).
