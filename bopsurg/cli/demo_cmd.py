@@ -176,8 +176,11 @@ def _detector_ap(data: Path, out: Path) -> None:
         task="coco-bbox",
     )
     s = json.loads((det_out / "scores.json").read_text())
+    lo, hi = s.get("ci95", {}).get("bop22_coco_bbox_AP") or (None, None)
+    interval = f" [{lo:.3f}, {hi:.3f}]" if lo is not None and hi is not None else ""
     print(
-        f"\ndetector (2D boxes, COCO AP via pycocotools): AP {s['bop22_coco_bbox_AP']:.3f}, "
+        f"\ndetector (2D boxes, COCO AP via pycocotools): AP {s['bop22_coco_bbox_AP']:.3f}"
+        f"{interval}, "
         f"AP50 {s['bop22_coco_bbox_AP50']:.3f}, AP75 {s['bop22_coco_bbox_AP75']:.3f}; "
         f"on visible boxes AP {s['bop22_coco_bbox_modal_AP']:.3f} -> {det_out / 'scores.json'}"
     )
