@@ -92,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
     from bopsurg.atomic import write_text
     from bopsurg.evaluation.bootstrap import json_strict
 
+    if args.rerun is not None:
+        _rrd_path(args)  # first: 'compare --rerun A B' took A as the file
     if len(args.evals) < 2:
         raise BopsurgError("compare needs at least two evaluation folders")
     if args.bootstrap < 1:
@@ -143,6 +145,11 @@ def _rrd_path(args: argparse.Namespace) -> Path:
         if args.out is None:
             raise BopsurgError("--rerun without a file name writes OUT/compare.rrd: give --out")
         return Path(args.out) / _DEFAULT_RRD
+    if Path(args.rerun).is_dir():  # e.g. 'compare --rerun eval_a eval_b': a folder taken
+        raise BopsurgError(
+            f"--rerun {args.rerun}: a folder; give the .rrd file to write, or put --rerun "
+            "after the evaluation folders"
+        )
     return Path(args.rerun)
 
 
