@@ -41,13 +41,15 @@ Writes into --out: compare.json, and compare.png (needs matplotlib: bopsurg[figu
 drawn on the same axes in its own colour: fig4_error_histograms (RE / TE / MSSD with each
 one's median), recall_curves (one curve per evaluation and metric), bop24_pr_curves (the
 evaluations with the bop24 task) and, once for the shared test set, fig2_gt_distributions
-(GT distance and visibility, read from the dataset summary.json names; skipped if it is gone).
+(GT distance and visibility, from the dataset named in summary.json; skipped when that
+dataset is no longer there, refused when two evaluations name datasets with different GT).
 
 --rerun [FILE.rrd] (default OUT/compare.rrd) writes a rerun recording: the per-frame errors
 of every evaluation on one 'frame' timeline (metrics/<metric>/<eval>), each one's per-frame
 difference to the baseline (diff/<metric>/<eval>: above 0 it is worse there) with its worst
 regressions marked (diff/regressions/<eval>) and listed (report/regressions), and forest
 plots of the paired differences with their intervals (differences/<eval>/{scores,table}).
+Put a bare --rerun after the folders (else it takes the first folder as its file).
 
 --figures and --rerun need evaluations of pose results (errors.csv) of the same test set.
 
