@@ -4,7 +4,9 @@ Layout of the recording (entity paths; ``{key}`` is an evaluation's folder name 
 ``[A-Za-z0-9_-]``, :attr:`bopsurg.viz.evals.EvalFolder.key`; the first evaluation is the
 baseline; ``frame`` is the sequence timeline shared by all evaluations, one step per image
 with an estimate of any of them or a GT instance of the paper's table, in
-``(scene_id, im_id)`` order):
+``(scene_id, im_id)`` order; ``eval --rerun`` also counts images whose GT instances are all
+below ``--min-visib``, so the two recordings may number frames differently:
+``frame_info`` and the reports give the ids):
 
 - ``metrics/{metric}/{key}``: per-frame errors of each evaluation (RE deg, TE mm, MSSD mm,
   MSPD px: the metrics with ``in_rerun``, :mod:`bopsurg.metrics.registry`), one series per
