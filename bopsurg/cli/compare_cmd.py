@@ -15,6 +15,7 @@ from bopsurg.errors import BopsurgError
 if TYPE_CHECKING:
     from bopsurg.cli.commands import Subparsers
     from bopsurg.evaluation.bootstrap import Comparison, DetectionSamples
+    from bopsurg.viz.evals import EvalFolder
 
     #: One compared evaluation: its folder and the comparison of each number with the base.
     Compared = tuple[Path, dict[str, Comparison]]
@@ -36,10 +37,30 @@ paired bootstrap p-value of "no difference". An interval that excludes
 
 Writes into --out: compare.json, and compare.png (needs matplotlib: bopsurg[figures]).
 
+--figures (needs --out and matplotlib) also writes OUT/figures/, PNG + PDF, every evaluation
+drawn on the same axes in its own colour: fig4_error_histograms (RE / TE / MSSD with each
+one's median), recall_curves (one curve per evaluation and metric), bop24_pr_curves (the
+evaluations with the bop24 task) and, once for the shared test set, fig2_gt_distributions
+(GT distance and visibility, from the dataset named in summary.json; skipped when that
+dataset is no longer there, refused when two evaluations name datasets with different GT).
+
+--rerun [FILE.rrd] (default OUT/compare.rrd) writes a rerun recording: the per-frame errors
+of every evaluation on one 'frame' timeline (metrics/<metric>/<eval>), each one's per-frame
+difference to the baseline (diff/<metric>/<eval>: above 0 it is worse there) with its worst
+regressions marked (diff/regressions/<eval>) and listed (report/regressions), and forest
+plots of the paired differences with their intervals (differences/<eval>/{scores,table}).
+Put a bare --rerun after the folders (else it takes the first folder as its file).
+
+--figures and --rerun need evaluations of pose results (errors.csv) of the same test set.
+
 Example:
   bopsurg eval DATA a.csv --out eval_a && bopsurg eval DATA b.csv --out eval_b
-  bopsurg compare eval_a eval_b --out cmp
+  bopsurg compare eval_a eval_b --out cmp --figures --rerun
+  rerun cmp/compare.rrd
 """
+
+#: --rerun without a file name: OUT/compare.rrd.
+_DEFAULT_RRD = "compare.rrd"
 
 
 def register(sub: Subparsers) -> None:
@@ -49,6 +70,21 @@ def register(sub: Subparsers) -> None:
     )
     p.add_argument("evals", nargs="+", metavar="EVAL_DIR", help="folders of 'bopsurg eval'")
     p.add_argument("--out", default=None, help="folder for compare.json and compare.png")
+    p.add_argument(
+        "--figures",
+        action="store_true",
+        help="also write OUT/figures/: Fig. 2, Fig. 4, recall and BOP24 PR curves of every "
+        "evaluation overlaid, PNG + PDF (needs --out and matplotlib)",
+    )
+    p.add_argument(
+        "--rerun",
+        metavar="FILE.rrd",
+        nargs="?",
+        const=_DEFAULT_RRD,
+        default=None,
+        help="also write a rerun recording of the comparison (default file: OUT/compare.rrd; "
+        "needs bopsurg[rerun])",
+    )
     add_bootstrap_args(p)
     p.set_defaults(func=run)
 
@@ -58,10 +94,13 @@ def run(args: argparse.Namespace) -> int:
     from bopsurg.atomic import write_text
     from bopsurg.evaluation.bootstrap import json_strict
 
+    if args.rerun is not None:
+        _rrd_path(args)  # first: 'compare --rerun A B' took A as the file
     if len(args.evals) < 2:
         raise BopsurgError("compare needs at least two evaluation folders")
     if args.bootstrap < 1:
         raise BopsurgError("--bootstrap: compare needs at least 1 replicate")
+    folders = _load_for_outputs(args)  # before the bootstrap: a bad input fails first
     base_dir = Path(args.evals[0])
     report: dict[str, object] = {
         "baseline": str(base_dir),
@@ -85,7 +124,56 @@ def run(args: argparse.Namespace) -> int:
         if png is not None:
             written.append(png)
         print("\nwrote " + ", ".join(str(p) for p in written))
+    if folders is not None and args.figures:
+        from bopsurg.viz.evals import comparison_gt
+        from bopsurg.viz.figures import write_comparison_figures
+
+        figures_dir = Path(args.out) / "figures"
+        paths = write_comparison_figures(folders, figures_dir, comparison_gt(folders))
+        print(f"wrote {len(paths)} figure files into {figures_dir}")
+    if folders is not None and args.rerun is not None:
+        from bopsurg.viz.rerun_compare import log_comparison
+
+        rrd = log_comparison(
+            folders, [res for _, res in rows], _rrd_path(args), replicates=args.bootstrap
+        )
+        print(f"wrote {rrd}; open it with: rerun {rrd}")
     return 0
+
+
+def _rrd_path(args: argparse.Namespace) -> Path:
+    """--rerun's file: as given, or OUT/compare.rrd for a bare --rerun."""
+    if args.rerun == _DEFAULT_RRD:
+        if args.out is None:
+            raise BopsurgError("--rerun without a file name writes OUT/compare.rrd: give --out")
+        return Path(args.out) / _DEFAULT_RRD
+    if Path(args.rerun).is_dir():  # e.g. 'compare --rerun eval_a eval_b': a folder taken
+        raise BopsurgError(
+            f"--rerun {args.rerun}: a folder; give the .rrd file to write, or put --rerun "
+            "after the evaluation folders"
+        )
+    return Path(args.rerun)
+
+
+def _load_for_outputs(args: argparse.Namespace) -> list[EvalFolder] | None:
+    """With --figures or --rerun: check their options and dependencies, then read the
+    evaluation folders (errors.csv, same test set); None without either."""
+    if not args.figures and args.rerun is None:
+        return None
+    if args.figures:
+        if args.out is None:
+            raise BopsurgError("--figures writes OUT/figures/: give --out")
+        from bopsurg.viz.figures import _pyplot
+
+        _pyplot()  # one line naming bopsurg[figures] when matplotlib is missing
+    if args.rerun is not None:
+        _rrd_path(args)
+        from bopsurg.viz.rerun_log import _import_rerun
+
+        _import_rerun()
+    from bopsurg.viz.evals import load_eval_folders
+
+    return load_eval_folders([Path(p) for p in args.evals])
 
 
 def compare_pair(

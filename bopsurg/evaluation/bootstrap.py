@@ -56,6 +56,8 @@ class DetectionSamples:
         est_tp: Their TP flags.
         offsets: Start of each (error type, object, threshold) run in ``est_image``, plus
             the end.
+        obj_ids: (O,) the object of each column of ``targets``, ascending (None in files
+            written before it was stored).
     """
 
     images: I64
@@ -64,6 +66,7 @@ class DetectionSamples:
     est_image: I64
     est_tp: NDArray[np.bool_]
     offsets: I64
+    obj_ids: I64 | None = None
 
     @classmethod
     def from_evaluation(cls, det: DetectionEvaluation) -> DetectionSamples:
@@ -85,12 +88,14 @@ class DetectionSamples:
             est_image=np.concatenate([empty_i, *(img for img, _ in runs)]),
             est_tp=np.concatenate([empty_b, *(tp for _, tp in runs)]),
             offsets=np.r_[0, np.cumsum(lengths)].astype(np.int64),
+            obj_ids=np.array(objs, dtype=np.int64),
         )
 
     def save(self, path: str | Path) -> None:
         """Write the samples (npz, atomically)."""
         names = np.array(list(self.error_types))
         thresholds = np.array([self.error_types[n] for n in names], dtype=np.float64)
+        extra: dict[str, Any] = {} if self.obj_ids is None else {"obj_ids": self.obj_ids}
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez_compressed(
                 f,
@@ -101,6 +106,7 @@ class DetectionSamples:
                 est_image=self.est_image,
                 est_tp=self.est_tp,
                 offsets=self.offsets,
+                **extra,
             )
 
     @classmethod
@@ -120,6 +126,7 @@ class DetectionSamples:
                     est_image=z["est_image"],
                     est_tp=z["est_tp"],
                     offsets=z["offsets"],
+                    obj_ids=z["obj_ids"] if "obj_ids" in z.files else None,
                 )
         except FileNotFoundError:
             raise InputError(
