@@ -127,8 +127,9 @@ def resolve_object_model(
 ) -> tuple[GenerateSettings, NeedleModel | None]:
     """Load, fit and place the settings' ``object_model`` (``generate --object-model``).
 
-    Says in one log line what was fitted and how the mesh was placed (a WARNING when its
-    radius differs from the recorded needle's beyond tolerance).
+    :func:`generate_dataset` then says in one log line what was fitted and how the mesh was
+    placed (:meth:`NeedleModel.describe`; a WARNING when its radius differs from the recorded
+    needle's beyond tolerance).
 
     Returns:
         The settings with ``backend_config["object_model"]`` as the generation record holds
@@ -149,8 +150,6 @@ def resolve_object_model(
         raise InputError(str(err), field="--object-model") from err
     model = scene.needle_model
     assert model is not None
-    level = logging.INFO if abs(model.radius_rel) <= RADIUS_RTOL else logging.WARNING
-    log.log(level, "%s", model.describe())
     return replace(settings, backend_config={**config, "object_model": model.record()}), model
 
 
@@ -296,6 +295,9 @@ def generate_dataset(
         for tmp in folder.glob(".*.tmp-*") if folder.is_dir() else ():
             tmp.unlink(missing_ok=True)
     _write_dataset_files(out, split, bag_paths, settings, needle_model)
+    if needle_model is not None:
+        level = logging.INFO if abs(needle_model.radius_rel) <= RADIUS_RTOL else logging.WARNING
+        log.log(level, "%s", needle_model.describe())
     units = [
         ReplayUnit(b, i, r, str(out), split, settings)
         for i, b in enumerate(bag_paths)
