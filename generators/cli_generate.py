@@ -30,7 +30,8 @@ and lighting in a headless render backend (PyBullet by default), and write a BOP
   DATASET/SPLIT/SCENE/{rgb,depth,mask,mask_visib}/     one scene per (bag, replay)
   DATASET/SPLIT/SCENE/scene_camera.json, scene_gt.json, scene_gt_info.json
   DATASET/SPLIT/SCENE/bopsurg_scene.json                the drawn viewpoint, light and seed
-  DATASET/SPLIT/bopsurg_generate.json                   settings, seed, bag checksums
+  DATASET/SPLIT/bopsurg_generate.json                   settings, seed, bag (and object
+                                                        model) checksums
 
 Scene ids: bag i (0-based, in command-line order), replay r -> scene i*replays + r + 1.
 A frame is written every --period seconds of the recording; frames whose needle
@@ -42,11 +43,12 @@ byte-identical files.
 models/obj_000001.ply is your mesh and every GT pose is its pose. Its arc (centre, normal,
 radius, extent; the tip is the end that tapers) is fitted and laid onto the recorded needle's
 arc (centres, planes and arc middles coincide), so the replayed motion, grasps and driving
-along the arc stay the recorded ones. One log line gives the fitted arc; a radius more than 5 %
-off the recorded needle's (--needle-* describe that one; default: 'bopsurg record''s) is
-rendered at its own size, centred on the recorded arc, with a warning. Meshes that are not
-needles, or not in mm, are refused. The mesh's path and sha256 are recorded in
-bopsurg_generate.json: resuming with another mesh is refused.
+along the arc stay the recorded ones (the recorded needle: the one --needle-* describe, by
+default the one 'bopsurg record' uses). One log line gives the fitted arc. A radius more than
+5 % off the recorded one is kept (your mesh defines the geometry): it is rendered at its own
+size on the recorded arc's centre, with a warning; more than 5x off is taken for a mesh not in
+mm and refused, like meshes that are not needles (one line, nothing written). The mesh's path
+and sha256 are recorded in bopsurg_generate.json: resuming with another mesh is refused.
 
 Render backends are plugins (entry-point group 'bopsurg.render_backends'); --backend picks
 one and each --backend-option KEY=VALUE goes to it. PyBullet's options: renderer=tiny|egl
