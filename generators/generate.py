@@ -47,7 +47,6 @@ from bopsurg.generators.replay import (
     frame_times,
     run_replay,
 )
-from bopsurg.model_frames import RADIUS_RTOL
 from bopsurg.needle import needle_keypoints
 from bopsurg.plugins import load_plugin
 
@@ -296,7 +295,7 @@ def generate_dataset(
             tmp.unlink(missing_ok=True)
     _write_dataset_files(out, split, bag_paths, settings, needle_model)
     if needle_model is not None:
-        level = logging.INFO if abs(needle_model.radius_rel) <= RADIUS_RTOL else logging.WARNING
+        level = logging.WARNING if needle_model.off_scale else logging.INFO
         log.log(level, "%s", needle_model.describe())
     units = [
         ReplayUnit(b, i, r, str(out), split, settings)

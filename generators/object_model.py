@@ -70,6 +70,11 @@ class NeedleModel:
         """Relative difference of the fitted radius from the recorded needle's."""
         return (self.arc.radius - self.recorded.radius) / self.recorded.radius
 
+    @property
+    def off_scale(self) -> bool:
+        """The radius differs from the recorded needle's beyond :data:`RADIUS_RTOL`."""
+        return abs(self.radius_rel) > RADIUS_RTOL
+
     def describe(self) -> str:
         """One line: the fitted arc and how the mesh was placed on the recorded needle."""
         a, r = self.arc, self.recorded
@@ -77,7 +82,7 @@ class NeedleModel:
             f"{self.path}: fitted arc radius {a.radius:.2f} mm, {a.extent_deg:.1f} deg, "
             f"wire Ø {2 * a.wire_radius:.2f} mm (rms {a.rms_mm:.3f} mm)"
         )
-        if abs(self.radius_rel) <= RADIUS_RTOL:
+        if not self.off_scale:
             return (
                 f"{fitted}; placed on the recorded needle (radius {r.radius:.2f} mm, "
                 f"{r.extent_deg:.1f} deg) through the fitted arcs"
