@@ -31,11 +31,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bopsurg.ambf_import import needle_model_info
 from bopsurg.bop.meshes import ObjectModel, load_ply
 from bopsurg.errors import InputError, ModelError
 from bopsurg.model_frames import RADIUS_RTOL, arc_alignment
-from bopsurg.needle import NeedleArc, NeedleSpec, fit_needle, needle_mesh
+from bopsurg.needle import NeedleArc, NeedleSpec, fit_needle, needle_mesh, needle_model_info
 
 F64 = NDArray[np.float64]
 
