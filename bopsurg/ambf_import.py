@@ -45,7 +45,7 @@ import yaml
 from bopsurg.bop.dataset import list_scene_ids, model_path, save_camera_json
 from bopsurg.bop.images import image_size, load_depth, save_depth
 from bopsurg.bop.jsonio import load_json, save_json
-from bopsurg.bop.meshes import ObjectModel, compute_model_info, load_ply, save_models_info, save_ply
+from bopsurg.bop.meshes import ObjectModel, load_ply, save_models_info, save_ply
 from bopsurg.bop.scene import (
     CameraInfo,
     GtPose,
@@ -56,7 +56,7 @@ from bopsurg.bop.scene import (
 )
 from bopsurg.errors import DatasetError
 from bopsurg.geometry import is_rotation
-from bopsurg.needle import NeedleArc, fit_needle, needle_mesh
+from bopsurg.needle import NeedleArc, fit_needle, needle_mesh, needle_model_info
 from bopsurg.plugins import DepthRenderer
 
 log = logging.getLogger(__name__)
@@ -236,16 +236,6 @@ def ambf_needle() -> ObjectModel:
     R = Rz @ np.diag([1.0, -1.0, -1.0])
     normals = None if m.normals is None else m.normals @ R.T
     return ObjectModel(m.pts @ R.T, m.faces, normals)  # a rotation keeps the winding
-
-
-def needle_model_info(model: ObjectModel, arc: NeedleArc) -> dict[str, Any]:
-    """``models_info`` entry of a needle: diameter and box, plus tip, tail and plane normal
-    (for the ambiguity analysis of ``bopsurg eval``)."""
-    return {
-        **compute_model_info(model.pts),
-        "keypoints": {"tip": arc.tip.tolist(), "tail": arc.tail.tolist()},
-        "plane_normal": arc.normal.tolist(),
-    }
 
 
 def _check_depth(frame: AmbfFrame) -> None:

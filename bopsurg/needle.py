@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from bopsurg.bop.meshes import ObjectModel
+from bopsurg.bop.meshes import ObjectModel, compute_model_info
 from bopsurg.errors import ModelError
 
 
@@ -323,3 +323,13 @@ def fit_needle(model: ObjectModel | np.ndarray, *, name: str = "model") -> Needl
         wire_radius=float(np.median(tube)),
         rms_mm=rms,
     )
+
+
+def needle_model_info(model: ObjectModel, arc: NeedleArc) -> dict[str, Any]:
+    """``models_info`` entry of any needle mesh: diameter and box (mm), plus the fitted tip,
+    tail (mm) and plane normal (for the ambiguity analysis of ``bopsurg eval``)."""
+    return {
+        **compute_model_info(model.pts),
+        "keypoints": {"tip": arc.tip.tolist(), "tail": arc.tail.tolist()},
+        "plane_normal": arc.normal.tolist(),
+    }

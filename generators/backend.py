@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.kinematics import DEFAULT_LAYOUT, SceneLayout
+from bopsurg.generators.object_model import NeedleModel, needle_model_from_config
 from bopsurg.needle import NeedleSpec
 
 F64 = NDArray[np.float64]
@@ -83,17 +84,35 @@ class SceneSpec:
 
     Attributes:
         needle: Needle geometry (mm, degrees); a backend builds the needle model from it.
+            With ``needle_model`` it is the needle the recordings pose (``needle_pose``).
         annotate_instruments: Also annotate the instruments' wrists and jaws (obj_ids 2..).
         layout: Where the arms and the endoscope stand (m).
+        needle_model: The user's needle mesh (``generate --object-model``): a backend
+            renders and returns (:meth:`RenderBackend.object_model`) this mesh instead, posed
+            by :meth:`needle_model_pose`; None: the needle built from ``needle``.
     """
 
     needle: NeedleSpec = field(default_factory=NeedleSpec)
     annotate_instruments: bool = False
     layout: SceneLayout = DEFAULT_LAYOUT
+    needle_model: NeedleModel | None = None
+
+    def needle_model_pose(self, T_world_needle: F64) -> F64:
+        """``T_world_object`` (4, 4), m, of the annotated needle's model frame.
+
+        ``T_world_needle`` (a :class:`SceneState`'s ``needle_pose``) itself, or with a
+        ``needle_model`` ``T_world_needle @ T_needle_model``: the user's mesh laid on the
+        recorded needle through the two fitted arcs.
+        """
+        T: F64 = np.asarray(T_world_needle, dtype=np.float64)
+        if self.needle_model is None:
+            return T
+        moved: F64 = T @ self.needle_model.T_needle_model
+        return moved
 
 
 #: ``bopsurg generate`` settings keys that describe the scene (the rest are backend options).
-SCENE_KEYS = ("needle", "annotate_instruments", "layout")
+SCENE_KEYS = ("needle", "annotate_instruments", "layout", "object_model")
 
 
 def split_backend_config(config: Mapping[str, Any]) -> tuple[SceneSpec, dict[str, Any]]:
@@ -101,11 +120,15 @@ def split_backend_config(config: Mapping[str, Any]) -> tuple[SceneSpec, dict[str
 
     Args:
         config: ``needle`` (:class:`NeedleSpec` keyword arguments, or one),
-            ``annotate_instruments`` (bool), ``layout`` (:class:`SceneLayout`); every other key
-            is an option of the backend (e.g. PyBullet's ``renderer``), passed on unchanged.
+            ``annotate_instruments`` (bool), ``layout`` (:class:`SceneLayout`),
+            ``object_model`` (a needle PLY path, or ``{"path", "sha256"}`` as the generation
+            record holds it: loaded and fitted, :mod:`~bopsurg.generators.object_model`);
+            every other key is an option of the backend (e.g. PyBullet's ``renderer``),
+            passed on unchanged.
 
     Raises:
         TypeError: A scene key with a value of the wrong type.
+        BopsurgError: ``object_model`` is missing, unreadable, changed or not a needle.
     """
     needle = config.get("needle")
     if needle is None:
@@ -117,10 +140,12 @@ def split_backend_config(config: Mapping[str, Any]) -> tuple[SceneSpec, dict[str
     layout = config.get("layout") or DEFAULT_LAYOUT
     if not isinstance(layout, SceneLayout):
         raise TypeError(f"'layout' must be a SceneLayout, got {type(layout).__name__}")
+    model = config.get("object_model")
     scene = SceneSpec(
         needle=needle,
         annotate_instruments=bool(config.get("annotate_instruments", False)),
         layout=layout,
+        needle_model=None if model is None else needle_model_from_config(model, needle),
     )
     return scene, {k: v for k, v in config.items() if k not in SCENE_KEYS}
 
@@ -187,7 +212,9 @@ class RenderBackend(Protocol):
     def load_scene(self, scene: SceneSpec) -> None:
         """Build the scene (tissue, instruments, needle), replacing any previous one.
 
-        Until the first :meth:`set_state` the scene shows :func:`default_state`.
+        Until the first :meth:`set_state` the scene shows :func:`default_state`. With a
+        ``scene.needle_model`` the needle is that mesh, posed by
+        :meth:`SceneSpec.needle_model_pose` (``object_model`` and ``object_pose`` report it).
         """
         ...
 

@@ -24,18 +24,31 @@ DESCRIPTION = """\
 Replay each recording (rosbag) --replays times from randomised endoscope (ECM) viewpoints
 and lighting in a headless render backend (PyBullet by default), and write a BOP dataset:
 
-  DATASET/models/obj_000001.ply (+ models_info.json)   the needle (obj 1), built by code
+  DATASET/models/obj_000001.ply (+ models_info.json)   the needle (obj 1), built by code,
+                                                        or your mesh (--object-model)
   DATASET/camera.json, DATASET/test_targets_bop19.json
   DATASET/SPLIT/SCENE/{rgb,depth,mask,mask_visib}/     one scene per (bag, replay)
   DATASET/SPLIT/SCENE/scene_camera.json, scene_gt.json, scene_gt_info.json
   DATASET/SPLIT/SCENE/bopsurg_scene.json                the drawn viewpoint, light and seed
-  DATASET/SPLIT/bopsurg_generate.json                   settings, seed, bag checksums
+  DATASET/SPLIT/bopsurg_generate.json                   settings, seed, bag (and object
+                                                        model) checksums
 
 Scene ids: bag i (0-based, in command-line order), replay r -> scene i*replays + r + 1.
 A frame is written every --period seconds of the recording; frames whose needle
 visib_fract is below --min-visib are dropped. Depth is uint16 with depth_scale 0.1 mm.
 Rerun the same command after an interruption: it resumes, and the same seed gives
 byte-identical files.
+
+--object-model PLY renders and annotates your needle mesh (mm) in its own model frame:
+models/obj_000001.ply is your mesh and every GT pose is its pose. Its arc (centre, normal,
+radius, extent; the tip is the end that tapers) is fitted and laid onto the recorded needle's
+arc (centres, planes and arc middles coincide), so the replayed motion, grasps and driving
+along the arc stay the recorded ones (the recorded needle: the one --needle-* describe, by
+default the one 'bopsurg record' uses). One log line gives the fitted arc. A radius more than
+5 % off the recorded one is kept (your mesh defines the geometry): it is rendered at its own
+size on the recorded arc's centre, with a warning; more than 5x off is taken for a mesh not in
+mm and refused, like meshes that are not needles (one line, nothing written). The mesh's path
+and sha256 are recorded in bopsurg_generate.json: resuming with another mesh is refused.
 
 Render backends are plugins (entry-point group 'bopsurg.render_backends'); --backend picks
 one and each --backend-option KEY=VALUE goes to it. PyBullet's options: renderer=tiny|egl
@@ -47,6 +60,7 @@ examples:
   bopsurg generate bags/ep001.bag --out data/needle --replays 4
   bopsurg generate bags/*.bag --out data/train --split train --workers 2 --annotate-instruments
   bopsurg generate bags/ep001.bag --out data/tex3 --backend-option texture_seed=3
+  bopsurg generate bags/ep001.bag --out data/mine --object-model Needle.ply
 """
 
 
@@ -82,6 +96,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--topic-map", default=d.topic_map, help="topic map: crtk, ambf or a TOML file")
     _add_camera_args(p, d)
     _add_needle_args(p)
+    p.add_argument(
+        "--object-model",
+        default=None,
+        metavar="PLY",
+        help="your needle mesh (PLY, mm) to render and annotate as obj 1, in its own model "
+        "frame (see above)",
+    )
     p.add_argument(
         "--rgb-format", choices=("png", "jpg"), default=d.rgb_format, help="rgb file format"
     )
@@ -207,8 +228,8 @@ def _backend_config(args: argparse.Namespace) -> dict[str, Any]:
     for key in options:
         if key in SCENE_KEYS:
             raise InputError(
-                f"{key!r} describes the scene, not the backend; use --annotate-instruments "
-                "or --needle-*",
+                f"{key!r} describes the scene, not the backend; use --annotate-instruments, "
+                "--needle-* or --object-model",
                 field="--backend-option",
             )
     if args.renderer is not None:
@@ -219,6 +240,8 @@ def _backend_config(args: argparse.Namespace) -> dict[str, Any]:
     needle = _needle_config(args)
     if needle:
         config["needle"] = needle
+    if args.object_model is not None:  # resolved to {path, sha256} by generate_dataset
+        config["object_model"] = args.object_model
     return {**config, **options}
 
 

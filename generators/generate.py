@@ -1,7 +1,8 @@
 """``bopsurg generate``: bags × replays → a BOP dataset, in parallel worker processes.
 
 The dataset-level files (models, camera.json, the split's ``bopsurg_generate.json`` with the
-seed, settings and bag checksums, and ``test_targets_bop19.json``) are written by the driver;
+seed, settings (with ``--object-model``'s path and sha256) and bag checksums, and
+``test_targets_bop19.json``) are written by the driver;
 each replay writes only its own scene folder (:mod:`bopsurg.generators.replay`), so workers
 never write the same file. Rerunning the same command resumes: finished scenes are skipped,
 an interrupted one continues at its last recorded frame.
@@ -12,10 +13,11 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
 from bopsurg._version import __version__
@@ -34,6 +36,7 @@ from bopsurg.generators.backend import (
     RenderBackend,
     split_backend_config,
 )
+from bopsurg.generators.object_model import NeedleModel
 from bopsurg.generators.recording import Recording
 from bopsurg.generators.replay import (
     AmodalRenderer,
@@ -82,6 +85,8 @@ def make_backend(settings: GenerateSettings) -> RenderBackend:
     try:
         scene, options = split_backend_config(settings.backend_config)
         backend = factory(options)
+    except BopsurgError:
+        raise  # e.g. the object model: already one line naming its file
     except (TypeError, ValueError) as err:
         raise InputError(f"backend {settings.backend!r}: {err}", field="--backend-option") from err
     if not isinstance(backend, RenderBackend):
@@ -116,8 +121,70 @@ def _replay_unit(unit: ReplayUnit, report: Callable[[int], None]) -> ReplayResul
 
 
 # -----------------------------------------------------------------------------------------
+def resolve_object_model(
+    settings: GenerateSettings,
+) -> tuple[GenerateSettings, NeedleModel | None]:
+    """Load, fit and place the settings' ``object_model`` (``generate --object-model``).
+
+    :func:`generate_dataset` then says in one log line what was fitted and how the mesh was
+    placed (:meth:`NeedleModel.describe`; a WARNING when its radius differs from the recorded
+    needle's beyond tolerance).
+
+    Returns:
+        The settings with ``backend_config["object_model"]`` as the generation record holds
+        it (``{"path": resolved, "sha256": ...}``), and the model; unchanged settings and
+        None without one.
+
+    Raises:
+        BopsurgError: The mesh is missing, unreadable, not a needle or not in mm (one line).
+    """
+    config = settings.backend_config
+    if config.get("object_model") is None:
+        return settings, None
+    try:
+        scene, _ = split_backend_config(config)
+    except BopsurgError as err:
+        raise InputError(str(err), field="--object-model") from None
+    except (TypeError, ValueError) as err:
+        raise InputError(str(err), field="--object-model") from err
+    model = scene.needle_model
+    assert model is not None
+    return replace(settings, backend_config={**config, "object_model": model.record()}), model
+
+
+def _check_same_object_model(old: dict[str, Any], new: dict[str, Any], info_path: Path) -> None:
+    """Refuse to resume a split generated with another needle mesh (or none)."""
+    before = (old.get("settings") or {}).get("backend_config", {}).get("object_model")
+    now = new.get("object_model")
+    if (before or {}).get("sha256") == (now or {}).get("sha256"):
+        return
+
+    def name(m: Any) -> str:
+        return f"{m['path']} (sha256 {m['sha256'][:12]}…)" if m else "none (bopsurg's needle)"
+
+    was, is_ = name(before), name(now)
+    raise InputError(
+        f"this split was generated with the object model {was}, not {is_}; choose a new --out "
+        "or --split (nothing was changed)",
+        path=info_path,
+    )
+
+
+def _without_model_path(settings: Any) -> Any:
+    """Recorded settings without the object model's path (compared by checksum instead)."""
+    config = settings.get("backend_config") if isinstance(settings, dict) else None
+    if not isinstance(config, dict) or not isinstance(config.get("object_model"), dict):
+        return settings
+    model = {k: v for k, v in config["object_model"].items() if k != "path"}
+    return {**settings, "backend_config": {**config, "object_model": model}}
+
+
 def _write_dataset_files(
-    out: Path, split: str, bags: Sequence[str], settings: GenerateSettings
+    out: Path,
+    split: str,
+    bags: Sequence[str],
+    settings: GenerateSettings,
+    needle_model: NeedleModel | None = None,
 ) -> None:
     """Models, camera.json and the split's generation record (refusing a mismatch)."""
     info = {
@@ -129,9 +196,11 @@ def _write_dataset_files(
     info_path = out / split / INFO_NAME
     if info_path.exists():
         old = load_json(info_path)
-        same = old.get("settings") == json.loads(json.dumps(info["settings"])) and [
-            b["sha256"] for b in old.get("bags", [])
-        ] == [b["sha256"] for b in info["bags"]]
+        _check_same_object_model(old, settings.backend_config, info_path)
+        # The mesh is the same by checksum; it may have moved (like the bags).
+        same = _without_model_path(old.get("settings")) == _without_model_path(
+            json.loads(json.dumps(info["settings"]))
+        ) and [b["sha256"] for b in old.get("bags", [])] == [b["sha256"] for b in info["bags"]]
         if not same:
             raise InputError(
                 "this split was generated with other bags or settings; choose a new --out or "
@@ -140,18 +209,33 @@ def _write_dataset_files(
             )
     backend = make_backend(settings)
     try:
+        if needle_model is not None:
+            _check_backend_renders(backend, needle_model, settings.backend)
         infos: dict[int, dict[str, Any]] = {}
         for name, obj_id in backend.annotated_objects():
             model = backend.object_model(name)
             save_ply(out / "models" / f"obj_{obj_id:06d}.ply", model)
             infos[obj_id] = compute_model_info(model.pts)
             if name == NEEDLE:  # tip, tail and plane for the ambiguity analysis of eval
-                infos[obj_id].update(needle_keypoints(model))
+                if needle_model is not None:  # fitted: the mesh's vertex order means nothing
+                    infos[obj_id] = needle_model.model_info()
+                else:
+                    infos[obj_id].update(needle_keypoints(model))
         save_models_info(out / "models" / "models_info.json", infos)
     finally:
         backend.close()
     save_camera_json(out, settings.K, settings.width, settings.height, settings.depth_scale)
     write_text(info_path, json.dumps(info, indent=2, sort_keys=True) + "\n")
+
+
+def _check_backend_renders(backend: RenderBackend, model: NeedleModel, name: str) -> None:
+    """Refuse a backend that ignores :attr:`SceneSpec.needle_model` (it would render its own)."""
+    got = backend.object_model(NEEDLE).pts
+    want = model.model.pts
+    if got.shape != want.shape or not np.array_equal(got, want):
+        raise BopsurgError(
+            f"backend {name!r} does not support --object-model: its needle is not {model.path}"
+        )
 
 
 def _write_targets(out: Path, split: str, scene_ids: Sequence[int]) -> None:
@@ -192,6 +276,7 @@ def generate_dataset(
         raise InputError("must be >= 1", field="replays")
     if workers < 1:
         raise InputError("must be >= 1", field="workers")
+    settings, needle_model = resolve_object_model(settings)  # before anything is written
     bag_paths = [str(b) for b in bags]
     if not bag_paths:
         raise InputError("no bag given")
@@ -208,7 +293,10 @@ def generate_dataset(
     for folder in (out, out / "models"):  # leftovers of a killed driver (not scene folders)
         for tmp in folder.glob(".*.tmp-*") if folder.is_dir() else ():
             tmp.unlink(missing_ok=True)
-    _write_dataset_files(out, split, bag_paths, settings)
+    _write_dataset_files(out, split, bag_paths, settings, needle_model)
+    if needle_model is not None:
+        level = logging.WARNING if needle_model.off_scale else logging.INFO
+        log.log(level, "%s", needle_model.describe())
     units = [
         ReplayUnit(b, i, r, str(out), split, settings)
         for i, b in enumerate(bag_paths)

@@ -54,7 +54,7 @@ import sys
 import tempfile
 import weakref
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
@@ -68,6 +68,7 @@ from scipy.spatial.transform import Rotation
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import (
     ARMS,
+    NEEDLE,
     CameraSpec,
     LightSpec,
     RenderedFrame,
@@ -495,6 +496,9 @@ class PyBulletBackend(ClosesOnExit):
             annotate_instruments=scene.annotate_instruments,
             texture_seed=self.options.texture_seed,
         )
+        if scene.needle_model is not None:  # the user's mesh; its winding may be inconsistent
+            part = assets.parts[NEEDLE]
+            assets.parts[NEEDLE] = replace(part, model=scene.needle_model.model, double_sided=True)
         self._assets = assets
         if egl:
             self._claim_egl()
@@ -531,7 +535,8 @@ class PyBulletBackend(ClosesOnExit):
         self._poses = {name: np.eye(4) for name in assets.parts}
         state = default_state()
         self._jaws = state.jaws
-        self._apply_poses(part_poses(scene.layout, state.psm_joints, state.jaws, state.needle_pose))
+        needle = scene.needle_model_pose(state.needle_pose)
+        self._apply_poses(part_poses(scene.layout, state.psm_joints, state.jaws, needle))
         log.debug(
             "scene loaded: %d bodies, annotated %s, renderer %s",
             len(self._bodies),
@@ -603,7 +608,7 @@ class PyBulletBackend(ClosesOnExit):
             raise ValueError(f"unknown arm {unknown[0]!r} in jaws; expected one of {ARMS}")
         jaws = dict(self._jaws)
         jaws.update({k: float(v) for k, v in state.jaws.items()})
-        poses = part_poses(scene.layout, state.psm_joints, jaws, needle)
+        poses = part_poses(scene.layout, state.psm_joints, jaws, scene.needle_model_pose(needle))
         self._jaws = jaws
         self._apply_poses(poses)
 

@@ -89,11 +89,16 @@ class NumpyNeedleBackend:
         if not 0 <= self.grey <= 255:
             raise ValueError(f"'grey' must be in [0, 255], got {self.grey}")
         self._model: ObjectModel | None = None
+        self._scene = SceneSpec()
         self._pose = default_state().needle_pose
 
     def load_scene(self, scene: SceneSpec) -> None:
-        self._model = needle_mesh(scene.needle)
-        self._pose = default_state().needle_pose
+        # The user's mesh (generate --object-model) when there is one, posed on the recorded
+        # needle by the scene: all a backend has to do for it.
+        user = scene.needle_model
+        self._model = user.model if user is not None else needle_mesh(scene.needle)
+        self._scene = scene
+        self._pose = scene.needle_model_pose(default_state().needle_pose)
 
     def annotated_objects(self) -> list[tuple[str, int]]:
         return [(NEEDLE, 1)]
@@ -106,7 +111,7 @@ class NumpyNeedleBackend:
         return self._model
 
     def set_state(self, state: SceneState) -> None:
-        self._pose = np.asarray(state.needle_pose, dtype=np.float64)
+        self._pose = self._scene.needle_model_pose(state.needle_pose)
 
     def object_pose(self, name: str) -> F64:
         self.object_model(name)
