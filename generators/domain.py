@@ -500,7 +500,6 @@ class DomainReplay:
 
 __all__ = [
     "BACKGROUNDS",
-    "DomainReplay",
     "DEFAULT_DOMAIN",
     "DOMAINS",
     "LIGHT_SETUPS",
@@ -511,6 +510,7 @@ __all__ = [
     "Appearance",
     "DomainBackend",
     "DomainDraw",
+    "DomainReplay",
     "SutureThread",
     "ThreadDraw",
     "dolly_offset",

@@ -92,9 +92,7 @@ def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appeara
         for part, rgba in looks.items():
             name = f"{arm}_{part}"
             if name in bodies:
-                p.changeVisualShape(
-                    bodies[name], -1, rgbaColor=list(rgba), physicsClientId=client
-                )
+                p.changeVisualShape(bodies[name], -1, rgbaColor=list(rgba), physicsClientId=client)
 
 
 def segment_quaternions(directions: F64) -> F64:
@@ -136,9 +134,7 @@ class ThreadBodies:
             for _ in range(n)
         ]
 
-    def show(
-        self, points: F64, radius_mm: float, rgba: tuple[float, float, float, float]
-    ) -> None:
+    def show(self, points: F64, radius_mm: float, rgba: tuple[float, float, float, float]) -> None:
         """Pose the segments along ``points`` (N + 1, 3), m (N fixed after the first call)."""
         pts = np.asarray(points, dtype=np.float64)
         delta = np.diff(pts, axis=0)

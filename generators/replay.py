@@ -56,9 +56,9 @@ from bopsurg.generators.backend import (
     RenderBackend,
     RenderedFrame,
 )
+from bopsurg.generators.domain import DEFAULT_DOMAIN, DomainReplay, draw_domain
 from bopsurg.generators.kinematics import ecm_camera_pose
 from bopsurg.generators.recording import Recording
-from bopsurg.generators.domain import DEFAULT_DOMAIN, DomainReplay, draw_domain
 from bopsurg.generators.viewpoints import ReplayDraw, light_in_world
 from bopsurg.geometry import intrinsics_from_fov
 from bopsurg.plugins import DepthRenderer

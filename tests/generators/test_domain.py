@@ -70,7 +70,8 @@ def test_dolly_brings_a_point_behind_the_camera_onto_the_axis():
 
 def test_thread_is_deterministic_rests_on_the_tissue_and_keeps_its_length():
     _, domain = draw_domain(np.random.default_rng(4), 0, "wide")
-    assert domain is not None and domain.thread is not None
+    assert domain is not None
+    assert domain.thread is not None
     tail, axis = needle_tail(needle_mesh())
     np.testing.assert_allclose(tail, [0.01018, 0.0, 0.0], atol=1e-5)  # the tail end, +X
     np.testing.assert_allclose(axis, [0.0, -1.0, 0.0], atol=1e-6)  # away from the tip
@@ -90,7 +91,8 @@ def test_thread_is_deterministic_rests_on_the_tissue_and_keeps_its_length():
     np.testing.assert_allclose(x[0], [0.009 + 0.01018, 0.006, 0.01], atol=1e-9)  # on the tail
     seg = 1e-3 * domain.thread.length_mm / domain.thread.segments
     lengths = np.linalg.norm(np.diff(x, axis=0), axis=1) / seg
-    assert 0.8 < lengths.min() and lengths.max() < 1.5  # the tubes overlap by 1.5
+    assert lengths.min() > 0.8
+    assert lengths.max() < 1.5
     # on or above the tissue (the floor is taken once per substep: 0.3 mm of slack)
     assert np.all(x[:, 2] >= floor_height(x[:, :2]) - 0.3e-3)
     assert x[-1, 2] < 0.005  # it fell onto the tissue
@@ -119,7 +121,8 @@ def test_paper_never_asks_the_backend_for_a_domain(fake_bag, monkeypatch, tmp_pa
     gen.generate_dataset([fake_bag], tmp_path / "ds", settings=settings, progress=False)
     scene = json.loads((tmp_path / "ds/test/000001/bopsurg_scene.json").read_text())
     info = json.loads((tmp_path / "ds/test/bopsurg_generate.json").read_text())
-    assert "domain" not in scene and "domain" not in info["settings"]
+    assert "domain" not in scene
+    assert "domain" not in info["settings"]
     wide = GenerateSettings(**{**settings.to_json(), "domain": "wide"})
     with pytest.raises(InputError, match="does not support --domain wide"):
         gen.generate_dataset([fake_bag], tmp_path / "w", settings=wide, progress=False)
@@ -134,7 +137,8 @@ def test_wide_is_recorded_and_gives_the_same_bytes_twice(fake_bag, tmp_path):
         gen.generate_dataset([fake_bag], out, settings=settings, progress=False)
     assert _digest(a) == _digest(b)
     info = json.loads((a / "test/bopsurg_generate.json").read_text())
-    assert info["settings"]["domain"] == "wide" and info["settings"]["seed"] == 11
+    assert info["settings"]["domain"] == "wide"
+    assert info["settings"]["seed"] == 11
     scene = json.loads((a / "test/000001/bopsurg_scene.json").read_text())
     rng = np.random.default_rng(np.random.SeedSequence([11, 0, 0]))
     draw, domain = draw_domain(rng, 0, "wide")
