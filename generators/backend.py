@@ -85,11 +85,14 @@ class SceneSpec:
         needle: Needle geometry (mm, degrees); a backend builds the needle model from it.
         annotate_instruments: Also annotate the instruments' wrists and jaws (obj_ids 2..).
         layout: Where the arms and the endoscope stand (m).
+        instruments: Instrument look: ``simple`` (the default) or ``lnd`` (closer to the
+            Large Needle Driver; ``generate --domain wide`` asks for it). A backend may ignore it.
     """
 
     needle: NeedleSpec = field(default_factory=NeedleSpec)
     annotate_instruments: bool = False
     layout: SceneLayout = DEFAULT_LAYOUT
+    instruments: str = "simple"
 
 
 #: ``bopsurg generate`` settings keys that describe the scene (the rest are backend options).

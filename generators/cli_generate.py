@@ -29,6 +29,7 @@ and lighting in a headless render backend (PyBullet by default), and write a BOP
   DATASET/SPLIT/SCENE/{rgb,depth,mask,mask_visib}/     one scene per (bag, replay)
   DATASET/SPLIT/SCENE/scene_camera.json, scene_gt.json, scene_gt_info.json
   DATASET/SPLIT/SCENE/bopsurg_scene.json                the drawn viewpoint, light and seed
+                                                        (and --domain wide's draw)
   DATASET/SPLIT/bopsurg_generate.json                   settings, seed, bag checksums
 
 Scene ids: bag i (0-based, in command-line order), replay r -> scene i*replays + r + 1.
@@ -99,8 +100,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="randomisation profile (default: paper): 'paper' draws the ECM viewpoint and "
         "light only, as the paper's replays; 'wide' also draws a camera-to-needle distance of "
         "20-120 mm, a light set-up, phantom surface and colour, background, a specular "
-        "needle, grey/black instruments and a simulated suture thread from the needle's tail "
-        "(an occluder in the needle's masks); every draw is recorded in bopsurg_scene.json",
+        "needle, grey/black materials on Large-Needle-Driver-like instruments and a simulated "
+        "suture thread from the needle's tail (an occluder in the needle's masks); every "
+        "draw is recorded in bopsurg_scene.json",
     )
     _add_backend_args(p, d)
     add_executor_args(p, unit="replay")

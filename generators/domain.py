@@ -12,6 +12,8 @@ draw of :func:`~bopsurg.generators.viewpoints.draw_replay` alone, byte for byte 
   usual light draw uses;
 - the look (:class:`Appearance`): phantom surface (procedural tissue of one of several seeds,
   or flat plastic) and colour, background, a specular steel needle, grey/black instruments;
+- instruments shaped closer to the Large Needle Driver (:func:`profile_scene`; per dataset,
+  not drawn, since with ``--annotate-instruments`` they are BOP objects);
 - a suture thread (:class:`ThreadDraw`) hanging from the needle's tail: a thin dark tube,
   simulated per frame (:class:`SutureThread`, position-based dynamics) so that it trails the
   tail with lag, drapes on the tissue and sways; it is scene geometry, so it occludes the
@@ -30,7 +32,7 @@ thread and distances in mm where the name says so.
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -38,6 +40,7 @@ from numpy.typing import NDArray
 
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.errors import InputError
+from bopsurg.generators.backend import SceneSpec
 from bopsurg.generators.pybullet_scene import DRAPE_SIZE, PAD_SIZE, PAD_THICKNESS, pad_height
 from bopsurg.generators.viewpoints import ReplayDraw, ViewpointRanges, draw_replay
 from bopsurg.needle import fit_needle
@@ -279,6 +282,15 @@ def draw_domain(
     )
 
 
+def profile_scene(profile: str, scene: SceneSpec) -> SceneSpec:
+    """The scene of a profile: ``wide`` shows Large Needle Driver instruments (``lnd``).
+
+    Chosen per dataset, not per replay: with ``--annotate-instruments`` the instrument parts
+    are BOP objects whose models are written once.
+    """
+    return scene if profile == DEFAULT_DOMAIN else replace(scene, instruments="lnd")
+
+
 def dolly_offset(T_world_cam: F64, point_world: F64, distance_mm: float) -> F64:
     """The camera-frame translation that puts ``point_world`` at depth ``distance_mm``.
 
@@ -517,4 +529,5 @@ __all__ = [
     "draw_domain",
     "floor_height",
     "needle_tail",
+    "profile_scene",
 ]

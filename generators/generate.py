@@ -34,6 +34,7 @@ from bopsurg.generators.backend import (
     RenderBackend,
     split_backend_config,
 )
+from bopsurg.generators.domain import profile_scene
 from bopsurg.generators.recording import Recording
 from bopsurg.generators.replay import (
     AmodalRenderer,
@@ -88,7 +89,7 @@ def make_backend(settings: GenerateSettings) -> RenderBackend:
         methods = [m for m in dir(RenderBackend) if not m.startswith("_")]
         missing = [m for m in methods if not callable(getattr(backend, m, None))]
         raise BopsurgError(f"backend {settings.backend!r} lacks {', '.join(missing)}")
-    backend.load_scene(scene)
+    backend.load_scene(profile_scene(settings.domain, scene))
     return backend
 
 

@@ -500,6 +500,7 @@ class PyBulletBackend(ClosesOnExit):
             scene.layout,
             annotate_instruments=scene.annotate_instruments,
             texture_seed=self.options.texture_seed,
+            instruments=scene.instruments,
         )
         self._assets = assets
         if egl:

@@ -68,6 +68,27 @@ def test_dolly_brings_a_point_behind_the_camera_onto_the_axis():
     np.testing.assert_allclose(p, [0.0, 0.0, 0.05], atol=1e-12)
 
 
+def test_wide_shows_large_needle_driver_instruments():
+    from bopsurg.generators.backend import SceneSpec
+    from bopsurg.generators.domain import profile_scene
+    from bopsurg.generators.pybullet_scene import build_scene
+
+    assert profile_scene("paper", SceneSpec()) == SceneSpec()
+    assert profile_scene("wide", SceneSpec()).instruments == "lnd"
+    simple = build_scene(annotate_instruments=True)
+    lnd = build_scene(annotate_instruments=True, instruments="lnd")
+    assert simple.annotated == lnd.annotated  # same objects, same frames
+    size = {k: np.ptp(v.model.pts, axis=0) for k, v in lnd.parts.items()}
+    assert size["psm1_shaft"][0] == pytest.approx(8.4, abs=0.05)  # Ø 8.4 mm
+    assert size["psm1_jaw1"][2] == pytest.approx(10.5, abs=0.05)  # 1 mm behind the pivot + 9.5
+    assert size["psm1_wrist"][1] == pytest.approx(7.8, abs=0.05)  # the pitch drum: Ø 7.8 mm
+    assert size["psm1_wrist"][2] == pytest.approx(7.6, abs=0.05)  # ... 7.6 mm long
+    assert lnd.parts["psm1_jaw1"].double_sided
+    assert not simple.parts["psm1_jaw1"].double_sided
+    with pytest.raises(ValueError, match="unknown instruments"):
+        build_scene(instruments="round")
+
+
 def test_thread_is_deterministic_rests_on_the_tissue_and_keeps_its_length():
     _, domain = draw_domain(np.random.default_rng(4), 0, "wide")
     assert domain is not None
