@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.errors import InputError
-from bopsurg.generators.backend import SceneSpec
+from bopsurg.generators.backend import NEEDLE, RenderBackend, SceneSpec
 from bopsurg.generators.pybullet_scene import DRAPE_SIZE, PAD_SIZE, PAD_THICKNESS, pad_height
 from bopsurg.generators.viewpoints import ReplayDraw, ViewpointRanges, draw_replay
 from bopsurg.needle import fit_needle
@@ -482,8 +482,9 @@ class DomainReplay:
     """
 
     def __init__(
-        self, domain: DomainDraw, backend: object, needle_positions: F64, T_world_cam: F64
+        self, domain: DomainDraw, backend: RenderBackend, needle_positions: F64, T_world_cam: F64
     ) -> None:
+        needle_model = backend.object_model(NEEDLE)
         if not isinstance(backend, DomainBackend):
             raise InputError(
                 f"the render backend {type(backend).__name__} does not support "
@@ -491,7 +492,7 @@ class DomainReplay:
                 field="--domain",
             )
         self.domain = domain
-        self.backend = backend
+        self.backend: DomainBackend = backend
         ref = np.median(np.asarray(needle_positions, np.float64).reshape(-1, 3), axis=0)
         #: ``T_cam_newcam``: the camera moved to the drawn distance (see :func:`dolly_offset`).
         self.camera_offset = dolly_offset(T_world_cam, ref, domain.distance_mm)
@@ -499,7 +500,7 @@ class DomainReplay:
         self.thread = None
         if domain.thread is not None:
             self.thread = SutureThread(domain.thread)
-            self._tail = needle_tail(backend.object_model("needle"))  # type: ignore[attr-defined]
+            self._tail = needle_tail(needle_model)
 
     def frame(self, t: float, T_world_needle: F64) -> None:
         """Advance the thread to time ``t`` (s) with the needle at ``T_world_needle`` (m)."""

@@ -34,7 +34,7 @@ from bopsurg.generators.backend import (
     RenderBackend,
     split_backend_config,
 )
-from bopsurg.generators.domain import profile_scene
+from bopsurg.generators.domain import DOMAINS, profile_scene
 from bopsurg.generators.recording import Recording
 from bopsurg.generators.replay import (
     AmodalRenderer,
@@ -193,6 +193,8 @@ def generate_dataset(
         raise InputError("must be >= 1", field="replays")
     if workers < 1:
         raise InputError("must be >= 1", field="workers")
+    if settings.domain not in DOMAINS:
+        raise InputError(f"must be one of {', '.join(DOMAINS)}", field="domain")
     bag_paths = [str(b) for b in bags]
     if not bag_paths:
         raise InputError("no bag given")

@@ -101,7 +101,8 @@ def segment_quaternions(directions: F64) -> F64:
     q = np.stack([-d[:, 1], d[:, 0], np.zeros(len(d)), 1.0 + d[:, 2]], axis=1)
     flip = q[:, 3] < 1e-9  # pointing along −z: half a turn about x
     q[flip] = (1.0, 0.0, 0.0, 0.0)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    out: F64 = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return out
 
 
 class ThreadBodies:
