@@ -150,6 +150,8 @@ class ThreadDraw:
         sway_hz: Sway frequency, Hz.
         sway_phase: Sway phase, rad.
         lay_seed: Seed of the turns of the initial lay (drawn from the replay's stream).
+        fall_m_s2: Downward acceleration, m/s²: air drag makes a light suture fall much
+            slower than 9.81; low values keep loops in the air longer (a stiffer suture).
     """
 
     length_mm: float
@@ -162,6 +164,7 @@ class ThreadDraw:
     sway_hz: float
     sway_phase: float
     lay_seed: int
+    fall_m_s2: float
 
 
 @dataclass(frozen=True)
@@ -270,6 +273,7 @@ def draw_domain(
         sway_hz=_u(rng, 0.2, 1.0),
         sway_phase=_u(rng, 0.0, 2 * np.pi),
         lay_seed=int(rng.integers(0, 2**31)),
+        fall_m_s2=_u(rng, 0.05, 0.6),
     )
     return draw, DomainDraw(
         profile=profile,
@@ -318,10 +322,15 @@ def dolly_offset(T_world_cam: F64, point_world: F64, distance_mm: float) -> F64:
 
 
 def floor_height(xy: F64) -> F64:
-    """Height (m) of what a thread lies on at world (x, y) (N, 2) m: the pad, else the drape."""
+    """Height (m) of what a thread lies on at world (x, y) (N, 2) m: the pad (its incisions
+    bridged), else the drape."""
     x_mm, y_mm = 1e3 * xy[:, 0], 1e3 * xy[:, 1]
     on_pad = (np.abs(x_mm) <= 0.5 * PAD_SIZE[0]) & (np.abs(y_mm) <= 0.5 * PAD_SIZE[1])
-    h = np.where(on_pad, pad_height(x_mm, y_mm), -PAD_THICKNESS)
+    # A thread spans the 1.2 mm incisions rather than dipping into them: the highest of the
+    # pad's heights 1.5 mm either side across them (they run along y).
+    top = np.maximum(pad_height(x_mm, y_mm), pad_height(x_mm - 1.5, y_mm))
+    top = np.maximum(top, pad_height(x_mm + 1.5, y_mm))
+    h = np.where(on_pad, top, -PAD_THICKNESS)
     h = np.where(np.abs(x_mm) > 0.5 * DRAPE_SIZE, -1e3, h)  # off the drape: no floor
     return 1e-3 * h
 
@@ -331,7 +340,7 @@ class SutureThread:
 
     A chain of ``segments`` + 1 particles (m, world): particle 0 is pinned to the tail and
     particle 1 one segment out along the tail's axis (the swaged thread leaves straight);
-    the rest fall under a reduced gravity (air drag on a light thread), sway sideways, keep
+    the rest fall (slowly: :attr:`ThreadDraw.fall_m_s2`), sway sideways, keep
     their segment lengths (alternating even/odd passes, vectorised), resist sharp bends,
     and rest on the tissue / drape with friction. The state depends only on the sequence of
     tail poses it was driven with, so a replay that re-runs its frames from the first one
@@ -342,10 +351,9 @@ class SutureThread:
         substep_s: Longest simulation step, s.
     """
 
-    GRAVITY = 0.5  # m/s², reduced: drag dominates a suture's fall
     DAMPING = 0.8  # velocity kept per substep
     ITERATIONS = 4
-    FRICTION = 0.7  # fraction of sideways motion removed on contact
+    FRICTION = 0.5  # fraction of sideways motion removed on contact
 
     def __init__(self, draw: ThreadDraw, substep_s: float = 0.025) -> None:
         self.draw = draw
@@ -365,15 +373,19 @@ class SutureThread:
         self._w[:2] = 0.0
 
     def _lay(self, tail: F64, axis: F64) -> None:
-        """Initial shape: out along the tail's axis, then a curling path on the tissue."""
+        """Initial shape: out along the tail's axis, down to the tissue, then a curling path
+        along it, every segment at its length (a lay shorter than the thread would buckle)."""
         d = self.draw
         n = d.segments + 1
         turns = np.random.default_rng(d.lay_seed).normal(0.0, d.curl, n)
         heading = d.heading + np.cumsum(turns)
-        steps = np.stack([np.cos(heading), np.sin(heading), np.full(n, -0.3)], axis=1)
-        steps /= np.linalg.norm(steps, axis=1, keepdims=True)
-        steps[:2] = axis
-        x = tail + self.seg * np.cumsum(np.concatenate([np.zeros((1, 3)), steps[:-1]]), axis=0)
+        x = np.empty((n, 3))
+        x[0], x[1] = tail, tail + self.seg * axis
+        for i in range(2, n):  # once per replay: a plain loop is fine
+            above = x[i - 1, 2] - (floor_height(x[i - 1 : i, :2])[0] + self.radius)
+            drop = float(np.clip(above, 0.0, 0.7 * self.seg))
+            run = np.sqrt(self.seg**2 - drop**2)
+            x[i] = x[i - 1] + (run * np.cos(heading[i]), run * np.sin(heading[i]), -drop)
         self.x = x
         self.x_prev = x.copy()
 
@@ -412,7 +424,7 @@ class SutureThread:
             ts = t0 + s * dt
             sway = 1e-3 * d.sway_mm_s2 * np.sin(2 * np.pi * d.sway_hz * ts + d.sway_phase)
             acc = np.array([sway * np.cos(d.heading + 1.3), sway * np.sin(d.heading + 1.3), 0.0])
-            acc[2] -= self.GRAVITY
+            acc[2] -= d.fall_m_s2
             v = (self.x - self.x_prev) * self.DAMPING
             self.x_prev = self.x.copy()
             self.x = self.x + v + acc * dt * dt
@@ -438,12 +450,12 @@ class SutureThread:
         self.x[i + 1] -= wb * corr
 
     def _bend(self) -> None:
-        """Push particles two apart to at least 1.6 segments (bends under ~106°)."""
+        """Push particles two apart towards at least 1.7 segments (bends under ~64°)."""
         delta = self.x[2:] - self.x[:-2]
         length = np.maximum(np.linalg.norm(delta, axis=1, keepdims=True), 1e-12)
-        short = np.minimum(length - 1.6 * self.seg, 0.0)
+        short = np.minimum(length - 1.7 * self.seg, 0.0)
         wa, wb = self._w[:-2, None], self._w[2:, None]
-        corr = 0.25 * delta * (short / length) / np.maximum(wa + wb, 1e-12)
+        corr = 0.5 * delta * (short / length) / np.maximum(wa + wb, 1e-12)
         self.x[:-2] += wa * corr
         self.x[2:] -= wb * corr
 

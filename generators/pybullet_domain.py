@@ -5,7 +5,7 @@
 default ``paper`` profile, so its renders are unchanged.
 
 The thread is a chain of base-only bodies sharing one visual shape: a 6-sided tube of the
-thread's radius, 1.5 segments long so that neighbours overlap at bends and small stretches
+thread's radius, 1.3 segments long so that neighbours overlap at bends and small stretches
 of the simulated chain leave no gaps. Bodies created after the scene get ids beyond the
 backend's instance table, whose last entry (0) maps them to "not annotated".
 """
@@ -21,15 +21,20 @@ import numpy as np
 import pybullet as p
 from numpy.typing import NDArray
 
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import ARMS
 from bopsurg.generators.domain import Appearance
 from bopsurg.generators.pybullet_backend import write_obj
-from bopsurg.generators.pybullet_scene import cylinder_mesh, skin_texture
+from bopsurg.generators.pybullet_scene import (
+    PAD_THICKNESS,
+    cylinder_mesh,
+    skin_texture,
+)
 
 F64 = NDArray[np.float64]
 
 #: Overlap of the rendered thread segments: tube length / segment length.
-SEGMENT_OVERLAP = 1.5
+SEGMENT_OVERLAP = 1.3
 
 
 def _texture(client: int, image: NDArray[np.uint8], folder: Path, key: str) -> int:
@@ -43,10 +48,37 @@ def _texture(client: int, image: NDArray[np.uint8], folder: Path, key: str) -> i
 
 
 def flat_texture(size: int = 256) -> NDArray[np.uint8]:
-    """A plain plastic surface: light grey with a faint fixed grain, (size, size, 3) uint8."""
+    """Plain plastic: light grey (0.84) with a faint fixed grain, (size, size, 3) uint8."""
     grain = np.random.default_rng(12345).normal(0.0, 3.0, (size, size))
-    v = np.clip(240.0 + grain, 0, 250).astype(np.uint8)
+    v = np.clip(215.0 + grain, 0, 250).astype(np.uint8)
     return np.repeat(v[..., None], 3, axis=2)
+
+
+#: The backdrop's grid lines (x and y), mm: a frame from the drape's edge to 3 m out.
+BACKDROP_LINES = (250.0, 400.0, 650.0, 1000.0, 1600.0, 3000.0)
+#: The drape texture's mean colour: the backdrop continues the drape in the distance.
+DRAPE_MEAN_RGB = (0.20, 0.47, 0.52)
+
+
+def backdrop_mesh() -> ObjectModel:
+    """A flat square frame around the drape (z = −8 mm), out to 3 m, facing up, mm.
+
+    Without it a far or tilted view sees TinyRenderer's empty (white) background beyond the
+    drape's edge. Cells grow with the distance, and none lies under the drape (TinyRenderer
+    pays for every pixel of a triangle's screen box, hidden or not).
+    """
+    lines = np.array(BACKDROP_LINES)
+    g = np.concatenate([-lines[::-1], lines])
+    x0, y0 = np.meshgrid(g[:-1], g[:-1])
+    x1, y1 = np.meshgrid(g[1:], g[1:])
+    outside = (np.abs(x0 + x1) >= 2 * lines[0]) | (np.abs(y0 + y1) >= 2 * lines[0])
+    x0, x1, y0, y1 = (a[outside] for a in (x0, x1, y0, y1))
+    z = np.full_like(x0, -PAD_THICKNESS)
+    corners = np.stack([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])  # (4, 3, cells)
+    pts = corners.transpose(2, 0, 1).reshape(-1, 3)
+    base = 4 * np.arange(len(x0))[:, None]
+    faces = np.concatenate([base + np.array([0, 1, 2]), base + np.array([0, 2, 3])])
+    return ObjectModel(pts=pts, faces=faces, normals=np.tile([0.0, 0.0, 1.0], (len(pts), 1)))
 
 
 def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appearance) -> None:
@@ -74,6 +106,20 @@ def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appeara
     p.changeVisualShape(
         bodies["drape"], -1, rgbaColor=list(a.background_rgba), physicsClientId=client
     )
+    far = [c * t for c, t in zip(DRAPE_MEAN_RGB, a.background_rgba[:3], strict=True)]
+    with tempfile.TemporaryDirectory(prefix="bopsurg_look_") as tmp:
+        path = Path(tmp) / "backdrop.obj"
+        write_obj(path, backdrop_mesh())
+        shape = p.createVisualShape(
+            p.GEOM_MESH,
+            fileName=str(path),
+            rgbaColor=[*far, 1.0],
+            specularColor=[0.0, 0.0, 0.0],
+            physicsClientId=client,
+        )
+    if shape < 0:
+        raise RuntimeError("pybullet could not create the backdrop's visual shape")
+    p.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=client)
     p.changeVisualShape(
         bodies["needle"],
         -1,

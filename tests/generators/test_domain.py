@@ -113,7 +113,7 @@ def test_thread_is_deterministic_rests_on_the_tissue_and_keeps_its_length():
     seg = 1e-3 * domain.thread.length_mm / domain.thread.segments
     lengths = np.linalg.norm(np.diff(x, axis=0), axis=1) / seg
     assert lengths.min() > 0.8
-    assert lengths.max() < 1.5
+    assert lengths.max() < 1.45  # stretched at most ~1.3 (the rendered overlap) plus slack
     # on or above the tissue (the floor is taken once per substep: 0.3 mm of slack)
     assert np.all(x[:, 2] >= floor_height(x[:, :2]) - 0.3e-3)
     assert x[-1, 2] < 0.005  # it fell onto the tissue
@@ -172,6 +172,38 @@ def test_wide_is_recorded_and_gives_the_same_bytes_twice(fake_bag, tmp_path):
     gt = json.loads((a / "test/000001/scene_gt.json").read_text())
     z = sorted(v[0]["cam_t_m2c"][2] for v in gt.values())
     assert z[len(z) // 2] == pytest.approx(domain.distance_mm, abs=1e-6)
+
+
+@pytest.mark.slow
+def test_killed_wide_replay_resumes_to_the_same_bytes(fake_bag, tmp_path):
+    """The thread is simulated: a resumed replay re-runs it from the first frame."""
+    pytest.importorskip("pybullet")
+    from bopsurg.generators.replay import ReplayUnit, run_replay
+
+    settings = GenerateSettings(replays=1, seed=5, min_visib=0.0, domain="wide")
+    clean, killed = tmp_path / "clean", tmp_path / "killed"
+    gen.generate_dataset([fake_bag], clean, settings=settings, progress=False)
+    gen._write_dataset_files(killed, "test", [str(fake_bag)], settings)
+    unit = ReplayUnit(str(fake_bag), 0, 0, str(killed), "test", settings)
+
+    def die_after_two(n: int, calls: list[int] = []) -> None:  # noqa: B006
+        calls.append(n)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    backend = gen.make_backend(settings)
+    with pytest.raises(KeyboardInterrupt):
+        run_replay(
+            unit,
+            backend,
+            gen._read_bag,
+            amodal=gen.make_amodal(settings, killed),
+            on_frame=die_after_two,
+        )
+    backend.close()
+    rep = gen.generate_dataset([fake_bag], killed, settings=settings, progress=False)
+    assert rep.frames_rendered == 1  # resumed at the third frame
+    assert _digest(clean) == _digest(killed)
 
 
 def test_thread_occludes_the_needle_and_is_not_in_its_visible_mask():
