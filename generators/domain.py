@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.errors import InputError
 from bopsurg.generators.backend import NEEDLE, RenderBackend, SceneSpec
-from bopsurg.generators.pybullet_scene import DRAPE_SIZE, PAD_SIZE, PAD_THICKNESS, pad_height
+from bopsurg.generators.pybullet_scene import PAD_SIZE, PAD_THICKNESS, pad_height
 from bopsurg.generators.viewpoints import ReplayDraw, ViewpointRanges, draw_replay
 from bopsurg.needle import fit_needle
 
@@ -323,7 +323,7 @@ def dolly_offset(T_world_cam: F64, point_world: F64, distance_mm: float) -> F64:
 
 def floor_height(xy: F64) -> F64:
     """Height (m) of what a thread lies on at world (x, y) (N, 2) m: the pad (its incisions
-    bridged), else the drape."""
+    bridged), else the drape (and the backdrop that continues it, in the same plane)."""
     x_mm, y_mm = 1e3 * xy[:, 0], 1e3 * xy[:, 1]
     on_pad = (np.abs(x_mm) <= 0.5 * PAD_SIZE[0]) & (np.abs(y_mm) <= 0.5 * PAD_SIZE[1])
     # A thread spans the 1.2 mm incisions rather than dipping into them: the highest of the
@@ -331,8 +331,8 @@ def floor_height(xy: F64) -> F64:
     top = np.maximum(pad_height(x_mm, y_mm), pad_height(x_mm - 1.5, y_mm))
     top = np.maximum(top, pad_height(x_mm + 1.5, y_mm))
     h = np.where(on_pad, top, -PAD_THICKNESS)
-    h = np.where(np.abs(x_mm) > 0.5 * DRAPE_SIZE, -1e3, h)  # off the drape: no floor
-    return 1e-3 * h
+    out: F64 = 1e-3 * h
+    return out
 
 
 class SutureThread:
@@ -509,6 +509,13 @@ class DomainReplay:
         #: ``T_cam_newcam``: the camera moved to the drawn distance (see :func:`dolly_offset`).
         self.camera_offset = dolly_offset(T_world_cam, ref, domain.distance_mm)
         backend.set_appearance(domain.appearance)
+        log.debug(
+            "domain %s: needle at %.1f mm, camera moved by %s m, light %s",
+            domain.profile,
+            domain.distance_mm,
+            np.round(self.camera_offset[:3, 3], 4).tolist(),
+            domain.light_setup,
+        )
         self.thread = None
         if domain.thread is not None:
             self.thread = SutureThread(domain.thread)

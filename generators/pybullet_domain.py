@@ -4,6 +4,11 @@
 :class:`~bopsurg.generators.domain.DomainBackend` methods here. Nothing here runs for the
 default ``paper`` profile, so its renders are unchanged.
 
+Materials change through ``changeVisualShape`` (TinyRenderer multiplies the texture by the
+colour, wrapping values above 1, so every multiplier is ≤ 1); a flat backdrop in the drape's
+plane, out to 3 m and tinted like the background, replaces the renderer's white void in far
+views.
+
 The thread is a chain of base-only bodies sharing one visual shape: a 6-sided tube of the
 thread's radius, 1.3 segments long so that neighbours overlap at bends and small stretches
 of the simulated chain leave no gaps. Bodies created after the scene get ids beyond the
