@@ -328,8 +328,9 @@ def floor_height(xy: F64) -> F64:
     on_pad = (np.abs(x_mm) <= 0.5 * PAD_SIZE[0]) & (np.abs(y_mm) <= 0.5 * PAD_SIZE[1])
     # A thread spans the 1.2 mm incisions rather than dipping into them: the highest of the
     # pad's heights 1.5 mm either side across them (they run along y).
-    top = np.maximum(pad_height(x_mm, y_mm), pad_height(x_mm - 1.5, y_mm))
-    top = np.maximum(top, pad_height(x_mm + 1.5, y_mm))
+    n = len(x_mm)
+    around = pad_height(np.concatenate([x_mm, x_mm - 1.5, x_mm + 1.5]), np.tile(y_mm, 3))
+    top = around.reshape(3, n).max(axis=0)
     h = np.where(on_pad, top, -PAD_THICKNESS)
     out: F64 = 1e-3 * h
     return out
@@ -366,11 +367,17 @@ class SutureThread:
         self.t: float | None = None
         self.tail = np.zeros(3)
         self.axis = np.array([1.0, 0.0, 0.0])
-        self._even = np.arange(0, draw.segments, 2)
-        self._odd = np.arange(1, draw.segments, 2)
         # inverse masses: the two pinned particles do not move under constraints
         self._w = np.ones(n)
         self._w[:2] = 0.0
+        # segments starting at even / odd particles, and each end's share of a correction
+        self._pairs = {k: len(range(k, draw.segments, 2)) for k in (0, 1)}
+        self._wa: dict[int, F64] = {}
+        self._wb: dict[int, F64] = {}
+        for k, m in self._pairs.items():
+            wa, wb = self._w[k : k + 2 * m : 2], self._w[k + 1 : k + 2 * m : 2]
+            total = np.maximum(wa + wb, 1e-12)
+            self._wa[k], self._wb[k] = (wa / total)[:, None], (wb / total)[:, None]
 
     def _lay(self, tail: F64, axis: F64) -> None:
         """Initial shape: out along the tail's axis, down to the tissue, then a curling path
@@ -432,22 +439,22 @@ class SutureThread:
             self.x[1] = tail_s + self.seg * axis_s
             floor = floor_height(self.x[:, :2]) + self.radius
             for _ in range(self.ITERATIONS):
-                self._lengths(self._even)
-                self._lengths(self._odd)
+                self._lengths(0)
+                self._lengths(1)
                 self._bend()
                 np.maximum(self.x[:, 2], floor, out=self.x[:, 2])
             self._friction(floor)
 
-    def _lengths(self, i: NDArray[np.int_]) -> None:
-        """Restore the lengths of segments ``i`` → ``i + 1`` (disjoint pairs)."""
-        a, b = self.x[i], self.x[i + 1]
+    def _lengths(self, start: int) -> None:
+        """Restore the lengths of every other segment from ``start`` (disjoint pairs; views)."""
+        m = self._pairs[start]
+        a, b = self.x[start : start + 2 * m : 2], self.x[start + 1 : start + 2 * m : 2]
+        wa, wb = self._wa[start], self._wb[start]
         delta = b - a
-        length = np.maximum(np.linalg.norm(delta, axis=1, keepdims=True), 1e-12)
-        wa, wb = self._w[i, None], self._w[i + 1, None]
-        wsum = np.maximum(wa + wb, 1e-12)
-        corr = delta * ((length - self.seg) / length) / wsum
-        self.x[i] += wa * corr
-        self.x[i + 1] -= wb * corr
+        length = np.sqrt(np.einsum("ij,ij->i", delta, delta))[:, None]
+        corr = delta * ((length - self.seg) / np.maximum(length, 1e-12))
+        a += wa * corr
+        b -= wb * corr
 
     def _bend(self) -> None:
         """Push particles two apart towards at least 1.7 segments (bends under ~64°)."""
