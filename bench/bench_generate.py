@@ -6,6 +6,10 @@ render-only rate (full scene + the needle's amodal render, nothing written) as t
 Ends with the time a paper-sized dataset (7,934 frames) would take at the measured rate.
 
     python bench/bench_generate.py [--replays 4] [--duration 20] [--period 0.5]
+        [--domain paper|wide] [--workers 1 2] [--no-render-only]
+
+With one worker the replays run in this process, and its CPU time per frame is printed
+too: on a shared machine it compares profiles (``--domain``) better than wall time.
 """
 
 from __future__ import annotations
