@@ -6,6 +6,10 @@ render-only rate (full scene + the needle's amodal render, nothing written) as t
 Ends with the time a paper-sized dataset (7,934 frames) would take at the measured rate.
 
     python bench/bench_generate.py [--replays 4] [--duration 20] [--period 0.5]
+        [--domain paper|wide] [--workers 1 2] [--no-render-only]
+
+With one worker the replays run in this process, and its CPU time per frame is printed
+too: on a shared machine it compares profiles (``--domain``) better than wall time.
 """
 
 from __future__ import annotations
@@ -54,6 +58,9 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=20.0, help="seconds of recording")
     ap.add_argument("--period", type=float, default=0.5)
     ap.add_argument("--renderer", choices=("tiny", "egl"), default="tiny")
+    ap.add_argument("--domain", choices=("paper", "wide"), default="paper")
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--no-render-only", action="store_true", help="skip the render-only bound")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bopsurg-bench-"))
     try:
@@ -64,26 +71,31 @@ def main() -> None:
             period=args.period,
             min_visib=0.0,  # keep every frame: measure the full per-frame cost
             backend_config={"renderer": args.renderer},
+            domain=args.domain,
         )
         n_frames = len(frame_times(0.0, args.duration, args.period)) * args.replays
         print(
             f"{args.replays} replays x {args.duration:g} s at {args.period:g} s -> "
-            f"{n_frames} frames, 640x480, renderer {args.renderer}"
+            f"{n_frames} frames, 640x480, renderer {args.renderer}, domain {args.domain}"
         )
-        bound = render_only(settings, bag, 40)
-        print(f"  render only (scene + amodal needle):  {bound:6.1f} frames/s (1 process)")
+        if not args.no_render_only:
+            bound = render_only(settings, bag, 40)
+            print(f"  render only (scene + amodal needle):  {bound:6.1f} frames/s (1 process)")
         rates = {}
-        for workers in (1, 2):
+        for workers in args.workers:
             out = work / f"ds{workers}"
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             rep = generate_dataset([bag], out, settings=settings, workers=workers, progress=False)
-            dt = time.perf_counter() - t0
+            dt, cpu = time.perf_counter() - t0, time.process_time() - c0
             rates[workers] = rep.frames_written / dt
+            # one worker runs in this process: its CPU time is the cost, whatever else runs
+            own = f", {1e3 * cpu / rep.frames_written:.0f} ms CPU/frame" if workers == 1 else ""
             print(
                 f"  generate, {workers} worker(s):            {rates[workers]:6.1f} frames/s "
-                f"({rep.frames_written} frames in {dt:.1f} s)"
+                f"({rep.frames_written} frames in {dt:.1f} s{own})"
             )
-        print(f"  scaling 1 -> 2 workers: {rates[2] / rates[1]:.2f}x")
+        if 1 in rates and 2 in rates:
+            print(f"  scaling 1 -> 2 workers: {rates[2] / rates[1]:.2f}x")
         best = max(rates.values())
         print(
             f"paper-sized dataset ({PAPER_FRAMES} frames) at {best:.1f} frames/s: "

@@ -90,12 +90,15 @@ class SceneSpec:
         needle_model: The user's needle mesh (``generate --object-model``): a backend
             renders and returns (:meth:`RenderBackend.object_model`) this mesh instead, posed
             by :meth:`needle_model_pose`; None: the needle built from ``needle``.
+        instruments: Instrument look: ``simple`` (the default) or ``lnd`` (closer to the
+            Large Needle Driver; ``generate --domain wide`` asks for it). A backend may ignore it.
     """
 
     needle: NeedleSpec = field(default_factory=NeedleSpec)
     annotate_instruments: bool = False
     layout: SceneLayout = DEFAULT_LAYOUT
     needle_model: NeedleModel | None = None
+    instruments: str = "simple"
 
     def needle_model_pose(self, T_world_needle: F64) -> F64:
         """``T_world_object`` (4, 4), m, of the annotated needle's model frame.

@@ -30,6 +30,7 @@ and lighting in a headless render backend (PyBullet by default), and write a BOP
   DATASET/SPLIT/SCENE/{rgb,depth,mask,mask_visib}/     one scene per (bag, replay)
   DATASET/SPLIT/SCENE/scene_camera.json, scene_gt.json, scene_gt_info.json
   DATASET/SPLIT/SCENE/bopsurg_scene.json                the drawn viewpoint, light and seed
+                                                        (and --domain wide's draw)
   DATASET/SPLIT/bopsurg_generate.json                   settings, seed, bag (and object
                                                         model) checksums
 
@@ -61,6 +62,7 @@ examples:
   bopsurg generate bags/*.bag --out data/train --split train --workers 2 --annotate-instruments
   bopsurg generate bags/ep001.bag --out data/tex3 --backend-option texture_seed=3
   bopsurg generate bags/ep001.bag --out data/mine --object-model Needle.ply
+  bopsurg generate bags/*.bag --out data/wide --split train --domain wide
 """
 
 
@@ -111,6 +113,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--annotate-instruments",
         action="store_true",
         help="annotate instrument parts as further objects (obj_id 2, 3, ...)",
+    )
+    p.add_argument(
+        "--domain",
+        choices=("paper", "wide"),
+        default=d.domain,
+        help="randomisation profile (default: paper): 'paper' draws the ECM viewpoint and "
+        "light only, as the paper's replays; 'wide' also draws a camera-to-needle distance of "
+        "20-120 mm, a light set-up, phantom surface and colour, background, a specular "
+        "needle, grey/black materials on Large-Needle-Driver-like instruments and a simulated "
+        "suture thread from the needle's tail (an occluder in the needle's masks); every "
+        "draw is recorded in bopsurg_scene.json",
     )
     _add_backend_args(p, d)
     add_executor_args(p, unit="replay")
@@ -267,6 +280,7 @@ def run(args: argparse.Namespace) -> int:
         height=args.height,
         K=_intrinsics(args),
         rgb_format=args.rgb_format,
+        domain=args.domain,
     )
     t0 = time.perf_counter()
     report = generate_dataset(

@@ -36,6 +36,7 @@ from bopsurg.generators.backend import (
     RenderBackend,
     split_backend_config,
 )
+from bopsurg.generators.domain import DOMAINS, profile_scene
 from bopsurg.generators.object_model import NeedleModel
 from bopsurg.generators.recording import Recording
 from bopsurg.generators.replay import (
@@ -93,7 +94,7 @@ def make_backend(settings: GenerateSettings) -> RenderBackend:
         methods = [m for m in dir(RenderBackend) if not m.startswith("_")]
         missing = [m for m in methods if not callable(getattr(backend, m, None))]
         raise BopsurgError(f"backend {settings.backend!r} lacks {', '.join(missing)}")
-    backend.load_scene(scene)
+    backend.load_scene(profile_scene(settings.domain, scene))
     return backend
 
 
@@ -277,6 +278,8 @@ def generate_dataset(
     if workers < 1:
         raise InputError("must be >= 1", field="workers")
     settings, needle_model = resolve_object_model(settings)  # before anything is written
+    if settings.domain not in DOMAINS:
+        raise InputError(f"must be one of {', '.join(DOMAINS)}", field="domain")
     bag_paths = [str(b) for b in bags]
     if not bag_paths:
         raise InputError("no bag given")

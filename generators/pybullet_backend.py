@@ -57,7 +57,7 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 import cv2
 import numpy as np
@@ -83,6 +83,10 @@ from bopsurg.generators.pybullet_scene import (
     part_poses,
 )
 from bopsurg.metrics.point_subsets import hull_vertices
+
+if TYPE_CHECKING:
+    from bopsurg.generators.domain import Appearance
+    from bopsurg.generators.pybullet_domain import ThreadBodies
 
 log = logging.getLogger(__name__)
 
@@ -444,6 +448,7 @@ class PyBulletBackend(ClosesOnExit):
         self._hulls: dict[str, F64] = {}  # annotated objects' hull points, m
         self._lut = np.zeros(1, dtype=np.int32)  # body id + 1 -> instance value
         self._jaws: dict[str, float] = default_state().jaws
+        self._thread: ThreadBodies | None = None  # the suture (--domain), made on demand
 
     # ------------------------------------------------------------------- lifetime
 
@@ -462,6 +467,7 @@ class PyBulletBackend(ClosesOnExit):
                     p.disconnect(physicsClientId=client)
         self._client = self._solo = None
         self._bodies, self._solo_bodies, self._solo_shown = {}, {}, None
+        self._thread = None
         if _egl_owner is not None and _egl_owner() is self:
             _egl_owner = None
 
@@ -495,6 +501,7 @@ class PyBulletBackend(ClosesOnExit):
             scene.layout,
             annotate_instruments=scene.annotate_instruments,
             texture_seed=self.options.texture_seed,
+            instruments=scene.instruments,
         )
         if scene.needle_model is not None:  # the user's mesh; its winding may be inconsistent
             part = assets.parts[NEEDLE]
@@ -706,6 +713,26 @@ class PyBulletBackend(ClosesOnExit):
             (camera.near, camera.far),
             render,
         )
+
+    # ------------------------------------------------------- domain randomisation
+
+    def set_appearance(self, appearance: Appearance) -> None:
+        """Materials of the loaded scene (``--domain``; see :mod:`~.pybullet_domain`)."""
+        from bopsurg.generators.pybullet_domain import apply_appearance
+
+        client, _, _ = self._require()
+        apply_appearance(client, self._bodies, appearance)
+
+    def set_thread(
+        self, points: F64, radius_mm: float, rgba: tuple[float, float, float, float]
+    ) -> None:
+        """Show the suture along ``points`` (N, 3), world, m: rgb and depth, not annotated."""
+        from bopsurg.generators.pybullet_domain import ThreadBodies
+
+        client, _, _ = self._require()
+        if self._thread is None:
+            self._thread = ThreadBodies(client)
+        self._thread.show(points, radius_mm, rgba)
 
     def _render_solo(self, name: str, args: dict[str, Any]) -> tuple[NDArray[Any], NDArray[Any]]:
         """Depth and segmentation buffers of the object in the solo client (TinyRenderer)."""

@@ -21,6 +21,11 @@ The scene (world +Z up, tissue top at z = 0 around the origin, see
     by ∓jaw/2 about the tip frame's x axis (the yaw axis), so they open symmetrically about
     the tip z axis by the jaw angle; jaw1 lies on the tip frame's +y side.
 
+  With ``instruments="lnd"`` (``generate --domain wide``) the parts keep their frames but
+  look closer to the Large Needle Driver: a Ø 8.4 mm shaft, a clevis of two drums (about the
+  pitch and the yaw axes) joined by a web, a Ø 4 mm pivot pin, and rounded jaws
+  (half-elliptic sections, blunt round tip), see :func:`lnd_instrument_models`.
+
 - ``phantom``: an 80 × 60 × 8 mm suturing pad (top at z = 0) with two raised ridges and three
   incisions, skin-like procedural texture; ``drape``: a 0.5 m square blue-green drape at the
   pad's bottom (z = −8 mm).
@@ -267,6 +272,109 @@ def instrument_models() -> dict[str, ObjectModel]:
     }
 
 
+# Large Needle Driver look (``SceneSpec.instruments = "lnd"``, used by ``--domain wide``), mm:
+# a Ø 8.4 mm shaft, a rounded clevis (drums about the pitch and yaw axes joined by a web),
+# rounded jaws (half-elliptic sections tapering to a blunt round tip).
+LND_SHAFT_RADIUS = 4.2
+LND_SHAFT_END = -4.2  # the shaft's end stays clear of the clevis drum (radius 3.9)
+LND_PITCH_DRUM = (3.9, 7.6)  # radius, length along the pitch axis
+LND_YAW_DRUM = (2.6, 5.2)  # radius, length along the yaw axis, centred on it
+LND_WEB = (5.2, 6.4)  # the web between the drums: size along the yaw axis, the pitch axis
+LND_HUB = (2.0, 6.0)  # the jaw pivot pin: radius, length
+LND_JAW_LENGTH = 9.5
+LND_JAW_WIDTH = (3.4, 1.3)  # across, at the root and near the tip
+LND_JAW_THICKNESS = (1.9, 0.7)  # the half-ellipse's height, at the root and near the tip
+#: Instrument styles of :func:`instrument_models`.
+INSTRUMENT_STYLES = ("simple", "lnd")
+
+
+def _transformed(model: ObjectModel, R: F64, t: ArrayLike = (0.0, 0.0, 0.0)) -> ObjectModel:
+    """The model rotated by R (3×3) and moved by t (mm)."""
+    normals = None if model.normals is None else model.normals @ R.T
+    return ObjectModel(
+        pts=model.pts @ R.T + np.asarray(t, np.float64), faces=model.faces, normals=normals
+    )
+
+
+def rounded_jaw_mesh(side: int, sections: int = 14, arc: int = 10) -> ObjectModel:
+    """A Large Needle Driver jaw: half-elliptic sections along +z, blunt round tip, mm.
+
+    The grasping face is the plane y = 0 and the jaw bulges to ``side`` (+1: +y); it starts
+    1 mm behind the pivot (z = −1) and ends in a rounded tip at :data:`LND_JAW_LENGTH`.
+    The mesh is not consistently wound: upload it double-sided.
+    """
+    z0, z1 = JAW_ROOT, LND_JAW_LENGTH
+    u = np.linspace(0.0, 1.0, sections)
+    z = z0 + (z1 - z0) * u
+    tip = np.sqrt(np.clip(1.0 - np.clip((u - 0.7) / 0.3, 0.0, 1.0) ** 2, 0.0, 1.0))
+    a = 0.5 * (LND_JAW_WIDTH[0] + (LND_JAW_WIDTH[1] - LND_JAW_WIDTH[0]) * u) * tip
+    b = (LND_JAW_THICKNESS[0] + (LND_JAW_THICKNESS[1] - LND_JAW_THICKNESS[0]) * u) * tip
+    phi = np.linspace(0.0, np.pi, arc)
+    cx, sy = np.cos(phi), np.sin(phi)
+    ring = np.stack(
+        [a[:, None] * cx[None], side * b[:, None] * sy[None], np.repeat(z[:, None], arc, 1)], -1
+    )  # (sections, arc, 3)
+    nrm = np.stack(
+        [
+            cx[None] / np.maximum(a[:, None], 1e-3),
+            side * sy[None] / np.maximum(b[:, None], 1e-3),
+            np.zeros((sections, arc)),
+        ],
+        -1,
+    )
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    i = np.arange(sections - 1)[:, None] * arc
+    j = np.arange(arc - 1)[None, :]
+    q = (i + j).ravel()
+    curved = np.concatenate(
+        [np.stack([q, q + 1, q + arc + 1], 1), np.stack([q, q + arc + 1, q + arc], 1)]
+    )
+    surface = ObjectModel(pts=ring.reshape(-1, 3), faces=curved, normals=nrm.reshape(-1, 3))
+    # the flat grasping face: quads between the two edges (phi = 0 and pi) of each section
+    edge = np.concatenate([ring[:, 0], ring[:, -1]])
+    k = np.arange(sections - 1)
+    n = sections
+    flat_faces = np.concatenate(
+        [np.stack([k, k + 1, n + k + 1], 1), np.stack([k, n + k + 1, n + k], 1)]
+    )
+    flat = ObjectModel(
+        pts=edge, faces=flat_faces, normals=np.tile([0.0, -float(side), 0.0], (2 * n, 1))
+    )
+    root = _flat_polygons([ring[0]])
+    return _merge([surface, flat, root])
+
+
+def lnd_instrument_models() -> dict[str, ObjectModel]:
+    """The parts of a Large Needle Driver (:data:`INSTRUMENT_PARTS`), mm, in their frames.
+
+    Part frames as :func:`instrument_models`: the pitch axis is the wrist frame's z, the yaw
+    axis its y at x = 9 mm (:data:`~bopsurg.generators.kinematics.L_PITCH2YAW`).
+    """
+    to_y = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # z -> y
+    r_p, l_p = LND_PITCH_DRUM
+    r_y, l_y = LND_YAW_DRUM
+    web_y, web_z = LND_WEB
+    yaw_x = 9.0
+    wrist = _merge(
+        [
+            cylinder_mesh(r_p, -0.5 * l_p, 0.5 * l_p, sides=24),
+            box_mesh((yaw_x, web_y, web_z), (0.5 * yaw_x, 0.0, 0.0)),
+            _transformed(
+                cylinder_mesh(r_y, -0.5 * l_y, 0.5 * l_y, sides=20), to_y, (yaw_x, 0.0, 0.0)
+            ),
+        ]
+    )
+    return {
+        "shaft": cylinder_mesh(
+            LND_SHAFT_RADIUS, LND_SHAFT_END - SHAFT_LENGTH, LND_SHAFT_END, sides=24, max_segment=4.0
+        ),
+        "wrist": wrist,
+        "yaw": cylinder_mesh(LND_HUB[0], -0.5 * LND_HUB[1], 0.5 * LND_HUB[1], sides=16),
+        "jaw1": rounded_jaw_mesh(+1),
+        "jaw2": rounded_jaw_mesh(-1),
+    }
+
+
 def instrument_part_poses(q: ArrayLike, jaw: float, T_world_base: F64) -> dict[str, F64]:
     """World poses (4×4, m) of one instrument's part frames.
 
@@ -486,6 +594,7 @@ def build_scene(
     *,
     annotate_instruments: bool = False,
     texture_seed: int = 0,
+    instruments: str = "simple",
 ) -> SceneAssets:
     """All parts of the suturing scene.
 
@@ -494,7 +603,16 @@ def build_scene(
         layout: Robot layout (default :class:`~bopsurg.generators.kinematics.SceneLayout`).
         annotate_instruments: Also annotate the instruments' wrists and jaws.
         texture_seed: Seed of the procedural textures.
+        instruments: :data:`INSTRUMENT_STYLES`: ``simple`` (boxes) or ``lnd`` (the Large
+            Needle Driver's rounded clevis and jaws, :func:`lnd_instrument_models`).
+
+    Raises:
+        ValueError: An unknown instrument style.
     """
+    if instruments not in INSTRUMENT_STYLES:
+        raise ValueError(
+            f"unknown instruments {instruments!r}; expected one of {INSTRUMENT_STYLES}"
+        )
     layout = layout or SceneLayout()
     parts: dict[str, VisualPart] = {}
     # The needle mesh is consistently wound outwards, so back-face culling loses nothing.
@@ -507,9 +625,13 @@ def build_scene(
         "jaw2": (JAW_RGBA, METAL_SPECULAR),
     }
     for arm in ARMS:
-        for part, model in instrument_models().items():
+        models = instrument_models() if instruments == "simple" else lnd_instrument_models()
+        for part, model in models.items():
             rgba, spec = looks[part]
-            parts[f"{arm}_{part}"] = VisualPart(f"{arm}_{part}", model, rgba, spec)
+            two = instruments == "lnd"  # merged shells and lofts: not consistently wound
+            parts[f"{arm}_{part}"] = VisualPart(
+                f"{arm}_{part}", model, rgba, spec, double_sided=two
+            )
     pad, pad_uv = pad_mesh()
     parts["phantom"] = VisualPart(
         "phantom", pad, (1.0, 1.0, 1.0, 1.0), MATTE_SPECULAR, uvs=pad_uv, texture="skin"

@@ -56,9 +56,10 @@ from bopsurg.generators.backend import (
     RenderBackend,
     RenderedFrame,
 )
+from bopsurg.generators.domain import DEFAULT_DOMAIN, DomainReplay, draw_domain
 from bopsurg.generators.kinematics import ecm_camera_pose
 from bopsurg.generators.recording import Recording
-from bopsurg.generators.viewpoints import ReplayDraw, draw_replay, light_in_world
+from bopsurg.generators.viewpoints import ReplayDraw, light_in_world
 from bopsurg.geometry import intrinsics_from_fov
 from bopsurg.plugins import DepthRenderer
 from bopsurg.visibility import InstanceVisibility, instance_visibility, large_canvas
@@ -96,6 +97,7 @@ class GenerateSettings:
         renderer: Depth renderer plugin for the object-alone renders (the one
             ``bopsurg annotate`` uses); ``None`` uses the backend's own.
         rgb_format: ``png`` (BOP real) or ``jpg`` (BOP pbr).
+        domain: Randomisation profile (:data:`~bopsurg.generators.domain.DOMAINS`).
     """
 
     replays: int = 20
@@ -113,10 +115,14 @@ class GenerateSettings:
     backend_config: dict = field(default_factory=dict)
     renderer: str | None = "pybullet"
     rgb_format: str = "png"
+    domain: str = DEFAULT_DOMAIN
 
     def to_json(self) -> dict:
-        """JSON-ready form."""
-        return asdict(self)
+        """JSON-ready form (``domain`` only when not the default, as before it existed)."""
+        out = asdict(self)
+        if self.domain == DEFAULT_DOMAIN:
+            del out["domain"]
+        return out
 
 
 @dataclass(frozen=True)
@@ -256,11 +262,18 @@ class _View:
     light: LightSpec
 
     @classmethod
-    def of(cls, settings: GenerateSettings, draw: ReplayDraw) -> _View:
-        T_world_cam = ecm_camera_pose(draw.ecm_joints)
+    def of(
+        cls, settings: GenerateSettings, draw: ReplayDraw, offset: np.ndarray | None = None
+    ) -> _View:
+        """The views of a draw; ``offset`` (4×4 ``T_cam_newcam``) moves the stereo rig."""
+
+        def moved(T: np.ndarray) -> np.ndarray:
+            return T if offset is None else T @ offset
+
+        T_world_cam = moved(ecm_camera_pose(draw.ecm_joints))
         right = None
         if settings.stereo:
-            right = _camera(settings, ecm_camera_pose(draw.ecm_joints, right=True))
+            right = _camera(settings, moved(ecm_camera_pose(draw.ecm_joints, right=True)))
         return cls(
             T_world_cam=T_world_cam,
             camera=_camera(settings, T_world_cam),
@@ -270,10 +283,12 @@ class _View:
         )
 
 
-def _new_record(unit: ReplayUnit, draw: ReplayDraw, frames: int) -> dict[str, Any]:
+def _new_record(
+    unit: ReplayUnit, draw: ReplayDraw, frames: int, dressing: DomainReplay | None = None
+) -> dict[str, Any]:
     """The progress record of a replay that has not started."""
     settings = unit.settings
-    return {
+    record = {
         "bopsurg_version": __version__,
         "bag": str(unit.bag),
         "bag_index": unit.bag_index,
@@ -285,6 +300,12 @@ def _new_record(unit: ReplayUnit, draw: ReplayDraw, frames: int) -> dict[str, An
         "next_frame": 0,
         "complete": False,
     }
+    if dressing is not None:  # absent for the default profile, as before
+        record["domain"] = {
+            **dressing.domain.to_json(),
+            "camera_offset_m": dressing.camera_offset[:3, 3].tolist(),
+        }
+    return record
 
 
 def _amodal_depths(
@@ -328,14 +349,19 @@ def run_replay(
     settings = unit.settings
     files = _SceneFiles(unit)
     files.load()
-    draw = draw_replay(unit.rng(), unit.replay_index)
+    draw, domain = draw_domain(unit.rng(), unit.replay_index, settings.domain)
     if files.record.get("complete"):
         return ReplayResult(unit.scene_id, 0, len(files.gt), skipped=True)
     recording = recording_loader(unit.bag, settings.topic_map)
     times = frame_times(recording.start, recording.end, settings.period)
-    files.record = files.record or _new_record(unit, draw, len(times))
-    start = int(files.record["next_frame"])
     view = _View.of(settings, draw)
+    dressing = None
+    if domain is not None:  # --domain other than paper: move the camera, dress the scene
+        needle = [recording.state_at(float(t)).needle_pose[:3, 3] for t in times]
+        dressing = DomainReplay(domain, backend, np.array(needle), view.T_world_cam)
+        view = _View.of(settings, draw, dressing.camera_offset)
+    files.record = files.record or _new_record(unit, draw, len(times), dressing)
+    start = int(files.record["next_frame"])
     objects = backend.annotated_objects()
     rendered = 0
     # On resume the earlier frames are rendered again, unwritten: TinyRenderer's output can
@@ -344,6 +370,8 @@ def run_replay(
     for k in range(len(times)):
         state = recording.state_at(float(times[k]))
         backend.set_state(replace(state, ecm_joints=np.asarray(draw.ecm_joints)))
+        if dressing is not None:
+            dressing.frame(float(times[k]), backend.object_pose(NEEDLE))
         frame = backend.render(view.camera, view.light)
         poses = [_pose_mm(view.T_world_cam, backend.object_pose(name)) for name, _ in objects]
         large = _amodal_depths(backend, amodal, objects, poses, view.canvas)

@@ -1,0 +1,201 @@
+"""PyBullet side of ``--domain``: materials of a loaded scene and the suture thread's bodies.
+
+:class:`~bopsurg.generators.pybullet_backend.PyBulletBackend` delegates its
+:class:`~bopsurg.generators.domain.DomainBackend` methods here. Nothing here runs for the
+default ``paper`` profile, so its renders are unchanged.
+
+Materials change through ``changeVisualShape`` (TinyRenderer multiplies the texture by the
+colour, wrapping values above 1, so every multiplier is ≤ 1); a flat backdrop in the drape's
+plane, out to 3 m and tinted like the background, replaces the renderer's white void in far
+views.
+
+The thread is a chain of base-only bodies sharing one visual shape: a 6-sided tube of the
+thread's radius, 1.3 segments long so that neighbours overlap at bends and small stretches
+of the simulated chain leave no gaps. Bodies created after the scene get ids beyond the
+backend's instance table, whose last entry (0) maps them to "not annotated".
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pybullet as p
+from numpy.typing import NDArray
+
+from bopsurg.bop.meshes import ObjectModel
+from bopsurg.generators.backend import ARMS
+from bopsurg.generators.domain import Appearance
+from bopsurg.generators.pybullet_backend import write_obj
+from bopsurg.generators.pybullet_scene import (
+    PAD_THICKNESS,
+    cylinder_mesh,
+    skin_texture,
+)
+
+F64 = NDArray[np.float64]
+
+#: Overlap of the rendered thread segments: tube length / segment length.
+SEGMENT_OVERLAP = 1.3
+
+
+def _texture(client: int, image: NDArray[np.uint8], folder: Path, key: str) -> int:
+    path = folder / f"{key}.png"
+    if not cv2.imwrite(str(path), np.ascontiguousarray(image[..., ::-1])):
+        raise RuntimeError(f"could not write the texture {path}")
+    tex = int(p.loadTexture(str(path), physicsClientId=client))
+    if tex < 0:
+        raise RuntimeError(f"pybullet could not load the texture {path}")
+    return tex
+
+
+def flat_texture(size: int = 256) -> NDArray[np.uint8]:
+    """Plain plastic: light grey (0.84) with a faint fixed grain, (size, size, 3) uint8."""
+    grain = np.random.default_rng(12345).normal(0.0, 3.0, (size, size))
+    v = np.clip(215.0 + grain, 0, 250).astype(np.uint8)
+    return np.repeat(v[..., None], 3, axis=2)
+
+
+#: The backdrop's grid lines (x and y), mm: a frame from the drape's edge to 3 m out.
+BACKDROP_LINES = (250.0, 400.0, 650.0, 1000.0, 1600.0, 3000.0)
+#: The drape texture's mean colour: the backdrop continues the drape in the distance.
+DRAPE_MEAN_RGB = (0.20, 0.47, 0.52)
+
+
+def backdrop_mesh() -> ObjectModel:
+    """A flat square frame around the drape (z = −8 mm), out to 3 m, facing up, mm.
+
+    Without it a far or tilted view sees TinyRenderer's empty (white) background beyond the
+    drape's edge. Cells grow with the distance, and none lies under the drape (TinyRenderer
+    pays for every pixel of a triangle's screen box, hidden or not).
+    """
+    lines = np.array(BACKDROP_LINES)
+    g = np.concatenate([-lines[::-1], lines])
+    x0, y0 = np.meshgrid(g[:-1], g[:-1])
+    x1, y1 = np.meshgrid(g[1:], g[1:])
+    outside = (np.abs(x0 + x1) >= 2 * lines[0]) | (np.abs(y0 + y1) >= 2 * lines[0])
+    x0, x1, y0, y1 = (a[outside] for a in (x0, x1, y0, y1))
+    z = np.full_like(x0, -PAD_THICKNESS)
+    corners = np.stack([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])  # (4, 3, cells)
+    pts = corners.transpose(2, 0, 1).reshape(-1, 3)
+    base = 4 * np.arange(len(x0))[:, None]
+    faces = np.concatenate([base + np.array([0, 1, 2]), base + np.array([0, 2, 3])])
+    return ObjectModel(pts=pts, faces=faces, normals=np.tile([0.0, 0.0, 1.0], (len(pts), 1)))
+
+
+def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appearance) -> None:
+    """Set the materials of the scene's bodies (by part name) in ``client``.
+
+    Args:
+        client: The scene's pybullet client.
+        bodies: Body id by part name (``phantom``, ``drape``, ``needle``, ``psm1_shaft``...).
+        appearance: The drawn materials.
+    """
+    a = appearance
+    with tempfile.TemporaryDirectory(prefix="bopsurg_look_") as tmp:
+        if a.phantom_surface == "flat":
+            image = flat_texture()
+        else:
+            image = skin_texture(a.phantom_texture_seed)
+        tex = _texture(client, image, Path(tmp), "phantom")
+    p.changeVisualShape(
+        bodies["phantom"],
+        -1,
+        textureUniqueId=tex,
+        rgbaColor=list(a.phantom_rgba),
+        physicsClientId=client,
+    )
+    p.changeVisualShape(
+        bodies["drape"], -1, rgbaColor=list(a.background_rgba), physicsClientId=client
+    )
+    far = [c * t for c, t in zip(DRAPE_MEAN_RGB, a.background_rgba[:3], strict=True)]
+    with tempfile.TemporaryDirectory(prefix="bopsurg_look_") as tmp:
+        path = Path(tmp) / "backdrop.obj"
+        write_obj(path, backdrop_mesh())
+        shape = p.createVisualShape(
+            p.GEOM_MESH,
+            fileName=str(path),
+            rgbaColor=[*far, 1.0],
+            specularColor=[0.0, 0.0, 0.0],
+            physicsClientId=client,
+        )
+    if shape < 0:
+        raise RuntimeError("pybullet could not create the backdrop's visual shape")
+    p.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=client)
+    p.changeVisualShape(
+        bodies["needle"],
+        -1,
+        rgbaColor=list(a.needle_rgba),
+        specularColor=list(a.needle_specular),
+        physicsClientId=client,
+    )
+    looks = {
+        "shaft": a.shaft_rgba,
+        "wrist": a.metal_rgba,
+        "yaw": a.metal_rgba,
+        "jaw1": a.jaw_rgba,
+        "jaw2": a.jaw_rgba,
+    }
+    for arm in ARMS:
+        for part, rgba in looks.items():
+            name = f"{arm}_{part}"
+            if name in bodies:
+                p.changeVisualShape(bodies[name], -1, rgbaColor=list(rgba), physicsClientId=client)
+
+
+def segment_quaternions(directions: F64) -> F64:
+    """(N, 4) xyzw quaternions turning +z onto each unit direction (N, 3)."""
+    d = directions
+    q = np.stack([-d[:, 1], d[:, 0], np.zeros(len(d)), 1.0 + d[:, 2]], axis=1)
+    flip = q[:, 3] < 1e-9  # pointing along −z: half a turn about x
+    q[flip] = (1.0, 0.0, 0.0, 0.0)
+    out: F64 = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return out
+
+
+class ThreadBodies:
+    """The thread's bodies in one client, created at the first :meth:`show`.
+
+    Args:
+        client: The scene's pybullet client.
+    """
+
+    def __init__(self, client: int) -> None:
+        self.client = client
+        self.bodies: list[int] = []
+
+    def _create(self, n: int, length_mm: float, radius_mm: float, rgba: list[float]) -> None:
+        half = 0.5 * SEGMENT_OVERLAP * length_mm
+        with tempfile.TemporaryDirectory(prefix="bopsurg_thread_") as tmp:
+            path = Path(tmp) / "thread.obj"
+            write_obj(path, cylinder_mesh(radius_mm, -half, half, sides=6))
+            shape = p.createVisualShape(
+                p.GEOM_MESH,
+                fileName=str(path),
+                rgbaColor=rgba,
+                specularColor=[0.2, 0.2, 0.2],
+                physicsClientId=self.client,
+            )
+        if shape < 0:
+            raise RuntimeError("pybullet could not create the thread's visual shape")
+        self.bodies = [
+            p.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=self.client)
+            for _ in range(n)
+        ]
+
+    def show(self, points: F64, radius_mm: float, rgba: tuple[float, float, float, float]) -> None:
+        """Pose the segments along ``points`` (N + 1, 3), m (N fixed after the first call)."""
+        pts = np.asarray(points, dtype=np.float64)
+        delta = np.diff(pts, axis=0)
+        length = np.linalg.norm(delta, axis=1)
+        if not self.bodies:
+            self._create(len(delta), 1e3 * float(np.median(length)), radius_mm, list(rgba))
+        if len(delta) != len(self.bodies):
+            raise ValueError(f"the thread has {len(self.bodies)} segments, got {len(delta)}")
+        mid = 0.5 * (pts[1:] + pts[:-1])
+        quats = segment_quaternions(delta / np.maximum(length, 1e-12)[:, None])
+        for body, c, q in zip(self.bodies, mid.tolist(), quats.tolist(), strict=True):
+            p.resetBasePositionAndOrientation(body, c, q, physicsClientId=self.client)

@@ -1,0 +1,238 @@
+"""`generate --domain`: the paper profile is the old draw, the wide one reaches 20-120 mm,
+is recorded and deterministic, and its suture thread occludes the needle in its masks."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bopsurg.errors import InputError
+from bopsurg.generators import generate as gen
+from bopsurg.generators.backend import DEFAULT_NEEDLE_POSE, CameraSpec, LightSpec, SceneSpec
+from bopsurg.generators.domain import (
+    WIDE_DISTANCE_MM,
+    SutureThread,
+    dolly_offset,
+    draw_domain,
+    floor_height,
+    needle_tail,
+)
+from bopsurg.generators.kinematics import ecm_camera_pose, look_rotation, pose
+from bopsurg.generators.replay import GenerateSettings
+from bopsurg.generators.viewpoints import draw_replay
+from bopsurg.needle import needle_mesh
+from tests.generators.fake_backend import FakeBackend, FakeRecording
+
+
+def test_paper_profile_is_the_draw_of_before():
+    for seed in range(5):
+        for replay in (0, 7):
+            draw, domain = draw_domain(np.random.default_rng(seed), replay, "paper")
+            assert domain is None
+            assert draw == draw_replay(np.random.default_rng(seed), replay)
+    assert "domain" not in GenerateSettings().to_json()  # the record of before, unchanged
+    assert GenerateSettings(domain="wide").to_json()["domain"] == "wide"
+    with pytest.raises(ValueError, match="unknown domain"):
+        draw_domain(np.random.default_rng(0), 0, "nope")
+
+
+def test_wide_distance_is_reached_at_the_needle():
+    """The GT depth of the needle (its median position) is the drawn distance, 20-120 mm."""
+    K = np.array([[350.8, 0.0, 320.0], [0.0, 350.8, 240.0], [0.0, 0.0, 1.0]])
+    needle = DEFAULT_NEEDLE_POSE[:3, 3] + np.array([0.004, -0.003, 0.002])
+    z = []
+    for seed in range(60):
+        draw, domain = draw_domain(np.random.default_rng([seed, 0, seed % 20]), seed % 20, "wide")
+        assert domain is not None
+        T0 = ecm_camera_pose(draw.ecm_joints)
+        T = T0 @ dolly_offset(T0, needle, domain.distance_mm)
+        p0 = np.linalg.solve(T0, np.append(needle, 1.0))[:3]
+        p = np.linalg.solve(T, np.append(needle, 1.0))[:3]
+        np.testing.assert_allclose(T[:3, :3], T0[:3, :3])  # only moved, not turned
+        np.testing.assert_allclose((K @ p)[:2] / p[2], (K @ p0)[:2] / p0[2], atol=1e-6)  # same px
+        z.append(1e3 * p[2])
+        assert z[-1] == pytest.approx(domain.distance_mm, abs=1e-9)
+    z = np.array(z)
+    assert WIDE_DISTANCE_MM[0] <= z.min() < 35.0
+    assert 105.0 < z.max() <= WIDE_DISTANCE_MM[1]
+
+
+def test_dolly_brings_a_point_behind_the_camera_onto_the_axis():
+    T0 = np.eye(4)
+    T = T0 @ dolly_offset(T0, np.array([0.01, 0.0, -0.02]), 50.0)
+    p = np.linalg.solve(T, np.array([0.01, 0.0, -0.02, 1.0]))[:3]
+    np.testing.assert_allclose(p, [0.0, 0.0, 0.05], atol=1e-12)
+
+
+def test_wide_shows_large_needle_driver_instruments():
+    from bopsurg.generators.backend import SceneSpec
+    from bopsurg.generators.domain import profile_scene
+    from bopsurg.generators.pybullet_scene import build_scene
+
+    assert profile_scene("paper", SceneSpec()) == SceneSpec()
+    assert profile_scene("wide", SceneSpec()).instruments == "lnd"
+    simple = build_scene(annotate_instruments=True)
+    lnd = build_scene(annotate_instruments=True, instruments="lnd")
+    assert simple.annotated == lnd.annotated  # same objects, same frames
+    size = {k: np.ptp(v.model.pts, axis=0) for k, v in lnd.parts.items()}
+    assert size["psm1_shaft"][0] == pytest.approx(8.4, abs=0.05)  # Ø 8.4 mm
+    assert size["psm1_jaw1"][2] == pytest.approx(10.5, abs=0.05)  # 1 mm behind the pivot + 9.5
+    assert size["psm1_wrist"][1] == pytest.approx(7.8, abs=0.05)  # the pitch drum: Ø 7.8 mm
+    assert size["psm1_wrist"][2] == pytest.approx(7.6, abs=0.05)  # ... 7.6 mm long
+    assert lnd.parts["psm1_jaw1"].double_sided
+    assert not simple.parts["psm1_jaw1"].double_sided
+    with pytest.raises(ValueError, match="unknown instruments"):
+        build_scene(instruments="round")
+
+
+def test_thread_is_deterministic_rests_on_the_tissue_and_keeps_its_length():
+    _, domain = draw_domain(np.random.default_rng(4), 0, "wide")
+    assert domain is not None
+    assert domain.thread is not None
+    tail, axis = needle_tail(needle_mesh())
+    np.testing.assert_allclose(tail, [0.01018, 0.0, 0.0], atol=1e-5)  # the tail end, +X
+    np.testing.assert_allclose(axis, [0.0, -1.0, 0.0], atol=1e-6)  # away from the tip
+
+    def run() -> list[np.ndarray]:
+        thread = SutureThread(domain.thread)
+        out = []
+        for k in range(4):
+            T = pose(np.eye(3), [0.003 * k, 0.002 * k, 0.01])  # lifted 1 cm, moving
+            out.append(thread.advance(0.5 * k, T, tail, axis))
+        return out
+
+    a, b = run(), run()
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    x = a[-1]
+    np.testing.assert_allclose(x[0], [0.009 + 0.01018, 0.006, 0.01], atol=1e-9)  # on the tail
+    seg = 1e-3 * domain.thread.length_mm / domain.thread.segments
+    lengths = np.linalg.norm(np.diff(x, axis=0), axis=1) / seg
+    assert lengths.min() > 0.8
+    assert lengths.max() < 1.45  # stretched at most ~1.3 (the rendered overlap) plus slack
+    # on or above the tissue (the floor is taken once per substep: 0.3 mm of slack)
+    assert np.all(x[:, 2] >= floor_height(x[:, :2]) - 0.3e-3)
+    assert x[-1, 2] < 0.005  # it fell onto the tissue
+
+
+def _digest(root: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.fixture
+def fake_bag(monkeypatch, tmp_path):
+    bag = tmp_path / "a.bag"
+    bag.write_bytes(b"fake bag")
+    monkeypatch.setattr(gen, "_read_bag", lambda path, topic_map: FakeRecording(end=1.0))
+    return bag
+
+
+def test_paper_never_asks_the_backend_for_a_domain(fake_bag, monkeypatch, tmp_path):
+    """FakeBackend has no set_appearance / set_thread: the default needs neither."""
+    monkeypatch.setattr(gen, "make_backend", lambda settings: FakeBackend())
+    settings = GenerateSettings(replays=1, seed=3, renderer=None, min_visib=0.0)
+    gen.generate_dataset([fake_bag], tmp_path / "ds", settings=settings, progress=False)
+    scene = json.loads((tmp_path / "ds/test/000001/bopsurg_scene.json").read_text())
+    info = json.loads((tmp_path / "ds/test/bopsurg_generate.json").read_text())
+    assert "domain" not in scene
+    assert "domain" not in info["settings"]
+    wide = GenerateSettings(**{**settings.to_json(), "domain": "wide"})
+    with pytest.raises(InputError, match="does not support --domain wide"):
+        gen.generate_dataset([fake_bag], tmp_path / "w", settings=wide, progress=False)
+
+
+@pytest.mark.slow
+def test_wide_is_recorded_and_gives_the_same_bytes_twice(fake_bag, tmp_path):
+    pytest.importorskip("pybullet")
+    settings = GenerateSettings(replays=1, seed=11, min_visib=0.0, domain="wide")
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out in (a, b):
+        gen.generate_dataset([fake_bag], out, settings=settings, progress=False)
+    assert _digest(a) == _digest(b)
+    info = json.loads((a / "test/bopsurg_generate.json").read_text())
+    assert info["settings"]["domain"] == "wide"
+    assert info["settings"]["seed"] == 11
+    scene = json.loads((a / "test/000001/bopsurg_scene.json").read_text())
+    rng = np.random.default_rng(np.random.SeedSequence([11, 0, 0]))
+    draw, domain = draw_domain(rng, 0, "wide")
+    assert domain is not None
+    assert scene["draw"]["ecm_joints"] == list(draw.ecm_joints)
+    assert scene["domain"]["distance_mm"] == domain.distance_mm
+    assert scene["domain"]["thread"]["lay_seed"] == domain.thread.lay_seed  # type: ignore[union-attr]
+    assert len(scene["domain"]["camera_offset_m"]) == 3
+    # the GT depth of the needle is the drawn distance at the replay's median frame
+    gt = json.loads((a / "test/000001/scene_gt.json").read_text())
+    z = sorted(v[0]["cam_t_m2c"][2] for v in gt.values())
+    assert z[len(z) // 2] == pytest.approx(domain.distance_mm, abs=1e-6)
+
+
+@pytest.mark.slow
+def test_killed_wide_replay_resumes_to_the_same_bytes(fake_bag, tmp_path):
+    """The thread is simulated: a resumed replay re-runs it from the first frame."""
+    pytest.importorskip("pybullet")
+    from bopsurg.generators.replay import ReplayUnit, run_replay
+
+    settings = GenerateSettings(replays=1, seed=5, min_visib=0.0, domain="wide")
+    clean, killed = tmp_path / "clean", tmp_path / "killed"
+    gen.generate_dataset([fake_bag], clean, settings=settings, progress=False)
+    gen._write_dataset_files(killed, "test", [str(fake_bag)], settings)
+    unit = ReplayUnit(str(fake_bag), 0, 0, str(killed), "test", settings)
+
+    def die_after_two(n: int, calls: list[int] = []) -> None:  # noqa: B006
+        calls.append(n)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    backend = gen.make_backend(settings)
+    with pytest.raises(KeyboardInterrupt):
+        run_replay(
+            unit,
+            backend,
+            gen._read_bag,
+            amodal=gen.make_amodal(settings, killed),
+            on_frame=die_after_two,
+        )
+    backend.close()
+    rep = gen.generate_dataset([fake_bag], killed, settings=settings, progress=False)
+    assert rep.frames_rendered == 1  # resumed at the third frame
+    assert _digest(clean) == _digest(killed)
+
+
+def test_thread_occludes_the_needle_and_is_not_in_its_visible_mask():
+    pytest.importorskip("pybullet")
+    from bopsurg.generators.pybullet_backend import PyBulletBackend
+    from bopsurg.visibility import instance_visibility, large_canvas
+
+    K = np.array([[350.8, 0.0, 320.0], [0.0, 350.8, 240.0], [0.0, 0.0, 1.0]])
+    # 60 mm above the needle lying flat at the origin, looking straight down
+    T_world_cam = pose(look_rotation([0.0, 0.0, -1.0], up_hint=(0.0, 1.0, 0.0)), [0, 0, 0.06])
+    camera = CameraSpec(K=K, width=640, height=480, T_world_cam=T_world_cam)
+    # a straight thread 3 mm above the tissue across the needle's arc (x from -15 to 15 mm)
+    pts = np.stack([np.linspace(-0.015, 0.015, 13), np.full(13, 0.007), np.full(13, 0.003)], 1)
+    with PyBulletBackend() as backend:
+        backend.load_scene(SceneSpec())
+        before = backend.render(camera, LightSpec())
+        backend.set_thread(pts, 0.25, (0.03, 0.03, 0.035, 1.0))
+        after = backend.render(camera, LightSpec())
+        Kl, wl, hl = large_canvas(K, 640, 480)
+        canvas = CameraSpec(K=Kl, width=wl, height=hl, T_world_cam=T_world_cam)
+        alone = backend.render_object_depth("needle", canvas)
+    thread = np.abs(after.depth - before.depth) > 1e-6
+    assert thread.sum() > 50
+    assert np.all(after.instance[thread] == 0)  # the thread is no annotated object
+    assert after.rgb[thread].mean() < 60  # and dark
+    v0 = instance_visibility(before.depth, alone, K, delta=1.0)
+    v1 = instance_visibility(after.depth, alone, K, delta=1.0)
+    crossing = thread & v0.mask
+    assert crossing.sum() > 10  # it crosses the needle
+    assert not v1.mask_visib[crossing].any()  # ... which is hidden there
+    assert v1.info.visib_fract < v0.info.visib_fract < 1.0 + 1e-9
+    assert v1.info.px_count_visib == v0.info.px_count_visib - crossing.sum()
