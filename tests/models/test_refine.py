@@ -42,10 +42,21 @@ def _pose(view_deg: float, spin_deg: float, t: tuple[float, float, float]):
     return R, np.array(t, float)
 
 
+def _silhouette(R, t, supersample: int = 4) -> np.ndarray:
+    """The needle's mask as a renderer samples it: a pixel is foreground where the needle
+    covers its centre (here: at least half of it, from a 4× finer fill; OpenCV's polygon
+    fill alone marks every pixel an edge touches, about a pixel wider than the wire)."""
+    k = supersample
+    Kf = np.diag([k, k, 1.0]) @ K
+    Kf[:2, 2] += 0.5 * (k - 1)  # pixel centres: x_fine = k·x + (k − 1)/2
+    fine = project_silhouette(MODEL.pts, MODEL.faces, Kf, R, t, (480 * k, 640 * k), closed=True)
+    return fine.reshape(480, k, 640, k).mean(axis=(1, 3)) >= 0.5
+
+
 def _evidence(R, t, grid: int = 160, hidden: float = 0.0) -> Evidence:
     """The silhouette sampled on a square grid around it, like the segmenter's ROI; the
     rightmost ``hidden`` fraction of its pixels covered by an occluder (a visible mask)."""
-    mask = project_silhouette(MODEL.pts, MODEL.faces, K, R, t, (480, 640), closed=True)
+    mask = _silhouette(R, t)
     ys, xs = np.nonzero(mask)
     side = 1.5 * max(np.ptp(xs), np.ptp(ys))
     step = side / grid
@@ -71,35 +82,63 @@ def test_the_fit_recovers_a_perturbed_pose(view_deg):
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
     R0, t0 = _perturbed(R, t)
     assert metrics.te(t0[None], t[None])[0] == pytest.approx(3.0)
-    res = refine_pose(R0, t0, K, _evidence(R, t), ARC, IMAGE_ONLY)
+    res = refine_pose(R0, t0, K, _evidence(R, t), ARC)
     assert res.improved
     assert res.cost < res.start_cost
-    # the start is 3 mm / 5° off; from the mask alone the fit lands within 1 mm and 4.5°
-    # (measured 0.71 mm / 2.2° at 30°, 0.09 mm / 0.7° at 60°: the arc's in-plane rotation
-    # and its tilt trade off more when the arc is seen closer to edge-on)
+    # the start is 3 mm / 5° off; the default fit lands within 1 mm and 4.5° (measured
+    # 0.48 mm / 2.9° at 30°, 0.40 mm / 4.1° at 60°; the first, centre-line-only fit with its
+    # stronger prior kept 2.3 and 1.6 mm of the 3)
     assert metrics.te(res.t[None], t[None])[0] < 1.0
     assert metrics.re(res.R[None], R[None])[0] < 4.5
 
 
-@pytest.mark.parametrize("view_deg", [30.0, 60.0])
-def test_the_default_prior_still_lowers_the_depth_error(view_deg):
+@pytest.mark.parametrize("view_deg", [3.0, 10.0])
+def test_an_edge_on_needle_gets_part_of_its_depth_back(view_deg):
+    # seen edge-on the arc's image hardly fixes the depth: the default fit still takes the
+    # 3 mm start to under 2 mm (measured 1.46 mm at 3°, 1.53 mm at 10°)
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
     R0, t0 = _perturbed(R, t)
     res = refine_pose(R0, t0, K, _evidence(R, t), ARC)
-    # the prior towards the start (needed on edge-on needles, where the mask cannot pin the
-    # depth) holds part of the 3 mm back: measured 2.27 mm at 30°, 1.64 mm at 60°
-    assert metrics.te(res.t[None], t[None])[0] < 2.5
+    assert metrics.te(res.t[None], t[None])[0] < 2.0
+
+
+@pytest.mark.parametrize("view_deg", [3.0, 10.0])
+def test_the_wire_tube_removes_the_edge_on_depth_bias(view_deg):
+    # started at the truth with no prior: the foreground runs a wire radius past the centre
+    # line where the arc ends or turns back, so a centre-line-only fit lengthens the arc and
+    # moves it (measured 0.45 mm at 3°, 1.52 mm at 10°); the tube stays (0.17, 0.11 mm)
+    R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
+    ev = _evidence(R, t)
+    tube = refine_pose(R, t, K, ev, ARC, IMAGE_ONLY)
+    line = refine_pose(R, t, K, ev, ARC, FitSettings(prior_weight=0.0, tube=False))
+    te_tube = metrics.te(tube.t[None], t[None])[0]
+    assert te_tube < 0.3
+    assert te_tube < 0.5 * metrics.te(line.t[None], t[None])[0]
+
+
+def test_the_tube_matches_the_rendered_wire_width():
+    # at the true pose the tube's sides lie on the silhouette's outline: the side residuals
+    # (signed px, sub-pixel by the outline's bilinear crossing) centre on 0
+    from bopsurg.models.refine.fit import _Problem
+
+    R, t = _pose(60.0, 20.0, (2.0, -3.0, 90.0))
+    ev = _evidence(R, t)
+    settings = FitSettings()
+    _, r, _, _ = _Problem(ARC, ev, K, settings).evaluate(R[None], t[None], True)
+    sides = r[0, ev.size + settings.samples :]
+    assert abs(np.median(sides)) < 0.35
 
 
 @pytest.mark.parametrize(("view_deg", "hidden"), [(30.0, 0.3), (60.0, 0.5)])
 def test_an_occluded_arc_does_not_pull_the_fit_off_the_true_pose(view_deg, hidden):
-    # started at the truth, the default fit stays there (measured at most 0.5 mm / 1.1°);
-    # a forward loss that keeps pulling occluded samples towards the visible part drifted
-    # 7.5-8.2 mm / 9-18° on these frames
+    # started at the truth, the default fit stays there (measured at most 0.53 mm / 2.9°: with
+    # half the arc hidden its tilt is loosely held, and the prior is weak); a forward loss
+    # that keeps pulling occluded samples towards the visible part drifted 7.5-8.2 mm / 9-18°
+    # on these frames
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
     res = refine_pose(R, t, K, _evidence(R, t, hidden=hidden), ARC)
     assert metrics.te(res.t[None], t[None])[0] < 1.0
-    assert metrics.re(res.R[None], R[None])[0] < 2.0
+    assert metrics.re(res.R[None], R[None])[0] < 3.5
 
 
 def test_the_fit_is_deterministic():
@@ -173,7 +212,7 @@ def test_the_stage_refines_with_a_segmenter_and_counts(segmenter):
 
 def test_the_stage_uses_given_evidence():
     R, t = _pose(50.0, 15.0, (1.0, 2.0, 85.0))
-    mask = project_silhouette(MODEL.pts, MODEL.faces, K, R, t, (480, 640), closed=True)
+    mask = _silhouette(R, t)
     ys, xs = np.nonzero(mask)
     box = torch.tensor([[xs.min(), ys.min(), np.ptp(xs), np.ptp(ys)]], dtype=torch.float32)
 
