@@ -2,7 +2,7 @@
 
 The needle's centre line is a circular arc of known radius and extent in the model XY plane
 (:mod:`bopsurg.needle`). Its projection must explain the foreground pixels of the image and
-lie on them; two robust residuals, both in image px, say so:
+lie on them; robust residuals in image px, in both directions, say so:
 
 - *reverse* (evidence → model): every foreground pixel's distance to the projected wire, a
   tube of the wire's radius (``wire_radius · f / z`` px) around the projected centre line (a
