@@ -147,21 +147,36 @@ class LruCache(Generic[T]):
         return len(self._items)
 
 
-class _Batches(Dataset[tuple[list[int], list[Any]]]):
-    """Item k: the indices and samples of batch k (what a loader worker reads)."""
+class _Keyed(Dataset[tuple[int, Any]]):
+    """``(i, data[i])``: a sample with its index (what a loader worker reads)."""
 
-    def __init__(self, data: Dataset[Any], batches: list[list[int]]) -> None:
-        self.data, self.batches = data, batches
+    def __init__(self, data: Dataset[Any]) -> None:
+        self.data = data
+
+    def __getitem__(self, i: int) -> tuple[int, Any]:
+        return i, self.data[i]
+
+
+class _Order:
+    """The batch sampler of a persistent loader: yields the batches set for this epoch (it
+    runs in the training process; the workers only read)."""
+
+    def __init__(self) -> None:
+        self.batches: list[list[int]] = []
+
+    def __iter__(self) -> Iterator[list[int]]:
+        return iter(self.batches)
 
     def __len__(self) -> int:
         return len(self.batches)
 
-    def __getitem__(self, k: int) -> tuple[list[int], list[Any]]:
-        return self.batches[k], [self.data[i] for i in self.batches[k]]
 
+class _Collate(Generic[T]):
+    def __init__(self, collate: Callable[[list[Any], list[int]], T]) -> None:
+        self.collate = collate
 
-def _identity(x: T) -> T:
-    return x
+    def __call__(self, keyed: list[tuple[int, Any]]) -> T:
+        return self.collate([s for _, s in keyed], [i for i, _ in keyed])
 
 
 def _worker_init(_: int) -> None:
@@ -169,47 +184,48 @@ def _worker_init(_: int) -> None:
     cv2.setNumThreads(1)
 
 
-def batch_loader(
-    data: Dataset[Any],
-    index_batches: Sequence[Sequence[int]],
-    collate: Callable[[list[Any], list[int]], T],
-    num_workers: int = 0,
-) -> Iterator[T]:
-    """The batches ``collate(samples, indices)`` of ``index_batches``, in that order.
+class BatchReader(Generic[T]):
+    """Reads index batches of a dataset, in order, as collated batches.
+
+    With ``num_workers > 0`` a ``DataLoader`` with that many persistent background processes
+    reads up to ``2 * num_workers`` batches ahead (the processes, and their sample caches,
+    live as long as the reader); with 0 the batches are read in this process when asked for.
+    Reading draws no random number, so the batches do not depend on ``num_workers``.
 
     Args:
         data: A map-style dataset (``data[i]`` reads sample i from disk).
-        index_batches: Sample indices of each batch (the epoch's shuffled order).
-        collate: Stacks the samples of one batch.
-        num_workers: Background loader processes (0: read in this process, in step with the
-            training). With workers, up to ``2 * num_workers`` batches are read ahead.
+        collate: Stacks the samples of one batch: ``(samples, indices) -> batch``.
+        num_workers: Background loader processes.
     """
-    batches = [[int(i) for i in b] for b in index_batches]
-    if num_workers <= 0:
-        for b in batches:
-            yield collate([data[i] for i in b], b)
-        return
 
-    loader = DataLoader(
-        _Batches(data, batches), batch_size=None, shuffle=False, num_workers=num_workers,
-        collate_fn=_identity, worker_init_fn=_worker_init, prefetch_factor=2,
-    )  # fmt: skip
-    for b, samples in loader:
-        yield collate(samples, b)
+    def __init__(
+        self,
+        data: Dataset[Any],
+        collate: Callable[[list[Any], list[int]], T],
+        num_workers: int = 0,
+    ) -> None:
+        self.data, self.collate, self.num_workers = data, collate, num_workers
+        self._order = _Order()
+        self._loader: DataLoader[Any] | None = None
+        if num_workers > 0:
+            self._loader = DataLoader(
+                _Keyed(data), batch_sampler=self._order, num_workers=num_workers,
+                collate_fn=_Collate(collate), worker_init_fn=_worker_init,
+                persistent_workers=True, prefetch_factor=2,
+            )  # fmt: skip
 
+    def __call__(self, index_batches: Iterable[Sequence[int] | torch.Tensor]) -> Iterator[T]:
+        """The batches of ``index_batches`` (index lists or tensors), in that order."""
+        batches = [[int(i) for i in b] for b in index_batches]
+        if self._loader is None:
+            return (self.collate([self.data[i] for i in b], b) for b in batches)
+        self._order.batches = batches
+        return iter(self._loader)
 
-def iterate(
-    data: Dataset[Any],
-    collate: Callable[[list[Any], list[int]], T],
-    batch_size: int,
-    n: int,
-    num_workers: int = 0,
-) -> Iterable[T]:
-    """All ``n`` samples of ``data`` in order, in batches of ``batch_size`` (validation)."""
-    return batch_loader(
-        data, [list(range(i, min(i + batch_size, n))) for i in range(0, n, batch_size)],
-        collate, num_workers,
-    )  # fmt: skip
+    def all(self, batch_size: int) -> Iterator[T]:
+        """Every sample in index order, in batches of ``batch_size`` (validation)."""
+        n = len(self.data)  # type: ignore[arg-type]
+        return self(list(range(i, min(i + batch_size, n))) for i in range(0, n, batch_size))
 
 
 # --------------------------------------------------------------------------- detector
@@ -273,7 +289,7 @@ class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
 
         def read() -> torch.Tensor:
             im, _ = letterbox(load_rgb(self.paths[i]), self.input_hw)
-            return torch.from_numpy(im).permute(2, 0, 1).contiguous()
+            return torch.from_numpy(np.ascontiguousarray(im.transpose(2, 0, 1)))
 
         return self.cache.get(i, read)
 
@@ -449,10 +465,11 @@ class PoseSet(Dataset[PoseSample]):
         c_rgb = _warp(rgb, a, cx, cy, C, cv2.INTER_LINEAR)
         c_mask = _warp(mask.astype(np.uint8), a, cx, cy, C, cv2.INTER_NEAREST) > 0
         c_xyz = _warp(xyz, a, cx, cy, C, cv2.INTER_NEAREST)
+        # layout changes in NumPy: torch's thread pool is slow for them on a busy machine
         return (
-            torch.from_numpy(c_rgb).permute(2, 0, 1).contiguous(),
+            torch.from_numpy(np.ascontiguousarray(c_rgb.transpose(2, 0, 1))),
             torch.from_numpy(c_mask),
-            torch.from_numpy(c_xyz).permute(2, 0, 1).half(),
+            torch.from_numpy(np.ascontiguousarray(c_xyz.transpose(2, 0, 1)).astype(np.float16)),
         )
 
     def collate(self, samples: list[PoseSample], idx: list[int]) -> PoseBatch:

@@ -25,7 +25,7 @@ import torch
 
 from bopsurg.errors import BopsurgError
 from bopsurg.models import training
-from bopsurg.models.data import DetectionBatch, DetectionSet, batch_loader, iterate
+from bopsurg.models.data import DetectionBatch, DetectionSet, BatchReader
 from bopsurg.models.data import load_detection_set
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
 from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
@@ -62,7 +62,7 @@ class DetectorRecipe:
 
 @torch.no_grad()
 def validate(
-    model: YoloxDetector, data: DetectionSet, device: torch.device, num_workers: int = 0
+    model: YoloxDetector, data: DetectionSet, device: torch.device
 ) -> dict[str, float]:
     """Top-1 box per GT instance: recall at IoU 0.5 and mean IoU; false positives = images
     without GT where the best score is >= 0.3."""
@@ -71,7 +71,7 @@ def validate(
     model.eval()
     ious, fps, negatives = [], 0, 0
     batch: DetectionBatch
-    for batch in iterate(data, data.collate, 32, len(data), num_workers):
+    for batch in BatchReader(data, data.collate).all(32):
         images = batch.images.to(device).float() / 255
         dets = model.detect(images, conf_thr=0.001)
         for gt, det in zip(batch.targets, dets, strict=True):
@@ -160,18 +160,18 @@ def train_detector(
         train = train.head(max_images)
     val = load_detection_set(
         splits.val, splits.val_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
+        cache_items=loader.cache_items,
     )  # fmt: skip
     log.info("detector: %d train images, %d validation images", len(train), len(val))
     model = YoloxDetector(cfg).to(dev)
     meta = {"classes": list(classes)}
     export = training.Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
     step = _step_fn(model, recipe, dev, seed)
-    workers = loader.num_workers
     return training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
-        validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev, workers),
+        validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev),
         export=export, device=dev, progress=progress,
-        load=lambda order: batch_loader(train, order, train.collate, workers),
+        load=BatchReader(train, train.collate, loader.num_workers),
     )  # fmt: skip
 
 

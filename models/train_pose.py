@@ -26,7 +26,7 @@ from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.geometry import rotation_about_axis
 from bopsurg.models import training
-from bopsurg.models.data import PoseBatch, PoseSet, batch_loader, iterate, load_pose_set
+from bopsurg.models.data import PoseBatch, PoseSet, BatchReader, load_pose_set
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
@@ -193,14 +193,13 @@ def validate(
     cfg: PoseConfig,
     geo: ObjectGeometry,
     device: torch.device,
-    num_workers: int = 0,
 ) -> dict[str, float]:
     """Median RE (deg), TE (mm), MSSD (mm) on test-time crops around the GT visible boxes."""
     if len(data) == 0:
         return {}
     model.eval()
     R_all, t_all = [], []
-    for batch in iterate(data, data.collate, 64, len(data), num_workers):
+    for batch in BatchReader(data, data.collate).all(64):
         roi_img, coord2d, tg = roi_batch(batch, cfg, geo, device, None)
         out = model(roi_img, coord2d)
         R, t = pose_from_output(out, tg["K"], tg["centre"], tg["wh"], tg["side"], cfg)
@@ -283,18 +282,19 @@ def train_pose(
     )
     if max_instances is not None:
         train = train.head(max_instances)
-    val = load_pose_set(splits.val, splits.val_ids, obj_id, min_visib=0.3)
+    val = load_pose_set(
+        splits.val, splits.val_ids, obj_id, min_visib=0.3, cache_items=loader.cache_items
+    )
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
 
     model = GdrPoseNet(cfg).to(dev)
     export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
     step = _step_fn(model, cfg, geo, recipe, dev, seed)
-    workers = loader.num_workers
     return training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
-        validate=lambda ema: validate(ema, val, cfg, geo, dev, workers), export=export,
+        validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export,
         device=dev, progress=progress,
-        load=lambda order: batch_loader(train, order, train.collate, workers),
+        load=BatchReader(train, train.collate, loader.num_workers),
     )  # fmt: skip
 
 
