@@ -89,7 +89,9 @@ class PhotometricConfig:
     @property
     def active(self) -> bool:
         """Whether any operation can fire."""
-        return any(getattr(self, f.name) > 0 for f in dataclasses.fields(self) if f.name[-2:] == "_p")
+        return any(
+            getattr(self, f.name) > 0 for f in dataclasses.fields(self) if f.name[-2:] == "_p"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON/YAML-safe dict (ranges as lists)."""
@@ -175,8 +177,9 @@ def augment_one(image: Tensor, cfg: PhotometricConfig, gen: torch.Generator) -> 
     gains = [_u(gen, 1 - cfg.channel_gain, 1 + cfg.channel_gain) for _ in range(3)]
     gam = _u(gen)
     g = math.exp(_u(gen, math.log(cfg.gamma[0]), math.log(cfg.gamma[1])))
-    jpeg, quality = _u(gen), cfg.jpeg_quality[0] + int(
-        _u(gen) * (cfg.jpeg_quality[1] - cfg.jpeg_quality[0] + 1)
+    jpeg, quality = (
+        _u(gen),
+        cfg.jpeg_quality[0] + int(_u(gen) * (cfg.jpeg_quality[1] - cfg.jpeg_quality[0] + 1)),
     )
     quality = min(quality, cfg.jpeg_quality[1])
     if blur < cfg.blur_p:
@@ -195,9 +198,7 @@ def augment_one(image: Tensor, cfg: PhotometricConfig, gen: torch.Generator) -> 
     return out
 
 
-def augment_batch(
-    images: Tensor, cfg: PhotometricConfig, seeds: Sequence[int] | Tensor
-) -> Tensor:
+def augment_batch(images: Tensor, cfg: PhotometricConfig, seeds: Sequence[int] | Tensor) -> Tensor:
     """(B, 3, H, W) images in [0, 1], each augmented with its own generator seeded by
     ``seeds[i]`` (see :func:`sample_seed`); a new tensor, same device and dtype. With no
     operation active the images are returned unchanged (the same tensor)."""
@@ -206,7 +207,10 @@ def augment_batch(
     seeds = [int(s) for s in seeds]
     if len(seeds) != images.shape[0]:
         raise ValueError(f"{images.shape[0]} images but {len(seeds)} seeds")
-    out = [augment_one(img, cfg, torch.Generator().manual_seed(s)) for img, s in zip(images, seeds)]
+    out = [
+        augment_one(img, cfg, torch.Generator().manual_seed(s))
+        for img, s in zip(images, seeds, strict=False)
+    ]
     return torch.stack(out)
 
 

@@ -80,7 +80,9 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise BopsurgError(f"--config {p}: expected a mapping of sections, got {type(data).__name__}")
+        raise BopsurgError(
+            f"--config {p}: expected a mapping of sections, got {type(data).__name__}"
+        )
     for key in data:
         if key not in SECTIONS:
             raise BopsurgError(
@@ -147,9 +149,7 @@ def build(cls: type[D], base: dict[str, Any], values: Any, where: str) -> D:
     fields = {f.name for f in dataclasses.fields(cls)}
     for key in values:
         if key not in fields:
-            raise BopsurgError(
-                f"{where}: unknown key {key!r} (known: {', '.join(sorted(fields))})"
-            )
+            raise BopsurgError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(fields))})")
     merged = {**base, **{k: _coerce(v, hints[k], f"{where}.{k}") for k, v in values.items()}}
     try:
         return cls(**merged)

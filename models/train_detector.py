@@ -25,8 +25,7 @@ import torch
 
 from bopsurg.errors import BopsurgError
 from bopsurg.models import training
-from bopsurg.models.data import DetectionBatch, DetectionSet, BatchReader
-from bopsurg.models.data import load_detection_set
+from bopsurg.models.data import BatchReader, DetectionBatch, DetectionSet, load_detection_set
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
 from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
@@ -61,9 +60,7 @@ class DetectorRecipe:
 
 
 @torch.no_grad()
-def validate(
-    model: YoloxDetector, data: DetectionSet, device: torch.device
-) -> dict[str, float]:
+def validate(model: YoloxDetector, data: DetectionSet, device: torch.device) -> dict[str, float]:
     """Top-1 box per GT instance: recall at IoU 0.5 and mean IoU; false positives = images
     without GT where the best score is >= 0.3."""
     if len(data) == 0:

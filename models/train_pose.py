@@ -1,15 +1,15 @@
 """Train the GDR-Net-like pose head on the GT instances of a BOP split.
 
-Per batch, from the context crops of :class:`~bopsurg.models.data.PoseSet`: dynamic zoom-in
-(DZI) around the visible box, ROI image (bilinear, ``roi_in``), visible mask and object
-coordinates (nearest, ``roi_out``), the soft mask (covered fraction per cell), normalised
-coordinates and FPS surface regions computed on the fly, colour jitter, the optional
+Per batch, from the context crops of :class:`~bopsurg.models.data.PoseSet` (read from disk per
+batch): dynamic zoom-in (DZI) around the visible box, ROI image (bilinear, ``roi_in``), visible
+mask and object coordinates (nearest, ``roi_out``), the soft mask (covered fraction per cell),
+normalised coordinates and FPS surface regions computed on the fly, colour jitter, the optional
 photometric augmentations of ``recipe.augment`` (blur, noise, gamma, colour, JPEG; off by
-default) on the ROI image, SITE and allocentric targets; the GDR-Net losses of :func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe (as
-GDR-Net's): AdamW, quadratic warm-up, flat then cosine from 72 % of the steps, EMA of the
-weights, run by the shared epoch loop :func:`~bopsurg.models.training.fit`.
-Validation decodes poses with test-time crops around the GT visible boxes and reports the
-median RE / TE / MSSD with bopsurg's own metrics.
+default) on the ROI image, SITE and allocentric targets; the GDR-Net losses of
+:func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe (as GDR-Net's): AdamW, quadratic
+warm-up, flat then cosine from 72 % of the steps, EMA of the weights, run by the shared epoch
+loop :func:`~bopsurg.models.training.fit`. Validation decodes poses with test-time crops around
+the GT visible boxes and reports the median RE / TE / MSSD with bopsurg's own metrics.
 """
 
 from __future__ import annotations
@@ -26,8 +26,9 @@ from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.geometry import rotation_about_axis
 from bopsurg.models import training
-from bopsurg.models.data import PoseBatch, PoseSet, BatchReader, load_pose_set
+from bopsurg.models.data import BatchReader, PoseBatch, PoseSet, load_pose_set
 from bopsurg.models.detector.augment import hsv_jitter
+from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
 from bopsurg.models.pose.encodings import SiteRoi, ego_to_allo, rot6d_from_matrix, site_encode
@@ -35,7 +36,6 @@ from bopsurg.models.pose.losses import gdr_losses
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser, farthest_point_sampling, xyz_to_region
-from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.run_config import LoaderConfig, resolved, write_config
 
 log = logging.getLogger(__name__)

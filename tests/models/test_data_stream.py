@@ -74,7 +74,8 @@ def _peak_bytes(fn) -> int:
 def test_the_sets_hold_an_index_not_images(split):
     det = load_detection_set(split, split.scene_ids, INPUT_HW, [1])
     pose = load_pose_set(split, split.scene_ids, 1)
-    assert len(det) == 24 and len(pose) >= 12
+    assert len(det) == 24
+    assert len(pose) >= 12
     one_image = 3 * INPUT_HW[0] * INPUT_HW[1]
     assert _nbytes(det) < one_image  # the old loader held all 24 letterboxed images
     assert _nbytes(pose) < 3 * 256 * 256  # ... and every 256-px context crop
@@ -82,7 +83,9 @@ def test_the_sets_hold_an_index_not_images(split):
         det[i]
     for i in range(len(pose)):
         pose[i]
-    assert _nbytes(det) < one_image and len(det.cache) == 0 and len(pose.cache) == 0
+    assert _nbytes(det) < one_image
+    assert len(det.cache) == 0
+    assert len(pose.cache) == 0
 
 
 @pytest.mark.parametrize("kind", ["detector", "pose"])
@@ -110,24 +113,33 @@ def test_a_sample_is_the_image_letterboxed_and_its_boxes_scaled(split):
     sid, im_id = det.keys[i]
     expected, scale = letterbox(load_rgb(split.scene(sid).rgb_path(im_id)), INPUT_HW)
     image, targets = det[i]
-    assert image.shape == (3, *INPUT_HW) and image.dtype == torch.uint8
+    assert image.shape == (3, *INPUT_HW)
+    assert image.dtype == torch.uint8
     assert torch.equal(image.permute(1, 2, 0), torch.from_numpy(expected))
     assert det.scales[i] == pytest.approx(scale)
     info = split.scene(sid).gt_info[im_id][0]
     x, y, w, h = info.bbox_visib
-    np.testing.assert_allclose(targets[0, 1:].numpy(), np.array([x, y, x + w + 1, y + h + 1]) * scale)
+    np.testing.assert_allclose(
+        targets[0, 1:].numpy(), np.array([x, y, x + w + 1, y + h + 1]) * scale
+    )
 
 
 def test_pose_samples_hold_the_crop_mask_and_coordinates(split):
     pose = load_pose_set(split, split.scene_ids, 1, context=128)
     rgb, mask, xyz = pose[0]
-    assert rgb.shape == (3, 128, 128) and rgb.dtype == torch.uint8
-    assert mask.shape == (128, 128) and mask.dtype == torch.bool and mask.sum() > 0
-    assert xyz.shape == (3, 128, 128) and xyz.dtype == torch.float16
-    assert (xyz[:, ~mask] == 0).all() and (xyz[:, mask].abs().sum(0) > 0).all()
+    assert rgb.shape == (3, 128, 128)
+    assert rgb.dtype == torch.uint8
+    assert mask.shape == (128, 128)
+    assert mask.dtype == torch.bool
+    assert mask.sum() > 0
+    assert xyz.shape == (3, 128, 128)
+    assert xyz.dtype == torch.float16
+    assert (xyz[:, ~mask] == 0).all()
+    assert (xyz[:, mask].abs().sum(0) > 0).all()
     batch = pose.collate([pose[2], pose[0]], [2, 0])
     assert batch.idx.tolist() == [2, 0]
-    assert torch.equal(batch.R[0], pose.R[2]) and torch.equal(batch.rgb[1], rgb)
+    assert torch.equal(batch.R[0], pose.R[2])
+    assert torch.equal(batch.rgb[1], rgb)
 
 
 @pytest.mark.parametrize("kind", ["detector", "pose"])
@@ -155,10 +167,18 @@ def test_the_lru_cache_keeps_the_last_items_only():
         made.append(k)
         return k * 10
 
-    assert [cache.get(k, lambda k=k: make(k)) for k in (1, 2, 1, 3, 2, 1)] == [10, 20, 10, 30, 20, 10]
-    assert made == [1, 2, 3, 2, 1] and len(cache) == 2
+    assert [cache.get(k, lambda k=k: make(k)) for k in (1, 2, 1, 3, 2, 1)] == [
+        10,
+        20,
+        10,
+        30,
+        20,
+        10,
+    ]
+    assert made == [1, 2, 3, 2, 1]
+    assert len(cache) == 2
     off: LruCache[int] = LruCache(0)
     off.get(1, lambda: 1)
     assert len(off) == 0
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=">= 0"):
         LruCache(-1)

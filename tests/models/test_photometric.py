@@ -79,7 +79,8 @@ def test_gamma_is_drawn_log_uniformly_within_its_range():
         / math.log(0.5)
         for s in range(200)
     ]
-    assert 0.5 <= min(gs) and max(gs) <= 2.0
+    assert min(gs) >= 0.5
+    assert max(gs) <= 2.0
     assert sum(g < 1 for g in gs) == pytest.approx(100, abs=25)  # log-uniform: median 1
 
 
@@ -89,7 +90,10 @@ def test_blur_equals_opencv_gaussian_and_keeps_a_flat_image():
     ours = gaussian_blur(img, sigma)
     r = math.ceil(3 * sigma)
     ref = cv2.GaussianBlur(
-        img.permute(1, 2, 0).numpy(), (2 * r + 1, 2 * r + 1), sigma, borderType=cv2.BORDER_REFLECT_101
+        img.permute(1, 2, 0).numpy(),
+        (2 * r + 1, 2 * r + 1),
+        sigma,
+        borderType=cv2.BORDER_REFLECT_101,
     )
     torch.testing.assert_close(ours, torch.from_numpy(ref).permute(2, 0, 1), atol=1e-5, rtol=0)
     flat = torch.full((3, 16, 16), 0.3)
@@ -122,7 +126,8 @@ def test_jpeg_changes_the_image_less_at_higher_quality():
     img = _images(1, 32, 32)[0]
     low, high = jpeg_round_trip(img, 10), jpeg_round_trip(img, 95)
     assert (low - img).abs().mean() > (high - img).abs().mean() > 0
-    assert high.dtype == img.dtype and high.shape == img.shape
+    assert high.dtype == img.dtype
+    assert high.shape == img.shape
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -132,8 +137,10 @@ def test_every_op_keeps_range_shape_and_dtype(dtype):
     )
     imgs = _images().to(dtype)
     out = augment_batch(imgs, cfg, [1, 2, 3])
-    assert out.shape == imgs.shape and out.dtype == dtype
-    assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    assert out.shape == imgs.shape
+    assert out.dtype == dtype
+    assert float(out.min()) >= 0.0
+    assert float(out.max()) <= 1.0
     assert not torch.equal(out, imgs)
 
 
@@ -156,5 +163,7 @@ def test_config_validation_presets_and_round_trip():
     with pytest.raises(ValueError, match="unknown augment preset"):
         PhotometricConfig.from_dict({"preset": "heavy"})
     domain = PhotometricConfig.from_dict({"preset": "domain", "jpeg_p": 0.9})
-    assert domain.active and domain.jpeg_p == 0.9 and domain.blur_p == 0.3
+    assert domain.active
+    assert domain.jpeg_p == 0.9
+    assert domain.blur_p == 0.3
     assert PhotometricConfig.from_dict(domain.to_dict()) == domain

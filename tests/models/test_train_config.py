@@ -52,12 +52,15 @@ def _error(capsys, args: list[str]) -> str:
 def test_dump_config_gives_every_field_and_round_trips(tmp_path, capsys):
     conf = _dump(capsys, "pose", "--preset", "test")
     assert set(conf) == {"preset", "seed", "pose", "recipe", "augment", "loader"}
-    assert conf["pose"]["roi_in"] == 64 and conf["pose"]["w_region"] == 1.0
-    assert conf["recipe"]["epochs"] == 40 and conf["augment"]["jpeg_p"] == 0.0
+    assert conf["pose"]["roi_in"] == 64
+    assert conf["pose"]["w_region"] == 1.0
+    assert conf["recipe"]["epochs"] == 40
+    assert conf["augment"]["jpeg_p"] == 0.0
     again = _dump(capsys, "pose", "--config", _write(tmp_path / "c.yaml", yaml.safe_dump(conf)))
     assert again == conf
     det = _dump(capsys, "detector", "--preset", "s")
-    assert det["detector"]["input_hw"] == [480, 640] and "pose" not in det
+    assert det["detector"]["input_hw"] == [480, 640]
+    assert "pose" not in det
 
 
 def test_the_file_sets_fields_and_flags_override_it(tmp_path, capsys):
@@ -68,17 +71,24 @@ def test_the_file_sets_fields_and_flags_override_it(tmp_path, capsys):
         "augment: {preset: domain, blur_sigma: [1, 2]}\nloader: {num_workers: 1}\n",
     )
     conf = _dump(capsys, "pose", "--config", path)
-    assert conf["preset"] == "test" and conf["seed"] == 3
-    assert conf["pose"]["z_unit_mm"] == 100.0 and conf["pose"]["roi_in"] == 160
+    assert conf["preset"] == "test"
+    assert conf["seed"] == 3
+    assert conf["pose"]["z_unit_mm"] == 100.0
+    assert conf["pose"]["roi_in"] == 160
     assert conf["pose"]["num_regions"] == 8  # the rest from the test preset
-    assert conf["recipe"]["lr"] == 0.001 and conf["recipe"]["hsv"] == [0.0, 0.1, 0.2]
-    assert conf["augment"]["blur_p"] == 0.3 and conf["augment"]["blur_sigma"] == [1.0, 2.0]
+    assert conf["recipe"]["lr"] == 0.001
+    assert conf["recipe"]["hsv"] == [0.0, 0.1, 0.2]
+    assert conf["augment"]["blur_p"] == 0.3
+    assert conf["augment"]["blur_sigma"] == [1.0, 2.0]
     assert conf["loader"]["num_workers"] == 1
     flags = ["--epochs", "2", "--lr", "0.5", "--seed", "0", "--workers", "0", "--symmetric"]
     conf = _dump(capsys, "pose", "--config", path, *flags)
-    assert conf["recipe"]["epochs"] == 2 and conf["recipe"]["lr"] == 0.5 and conf["seed"] == 0
+    assert conf["recipe"]["epochs"] == 2
+    assert conf["recipe"]["lr"] == 0.5
+    assert conf["seed"] == 0
     assert conf["loader"]["num_workers"] == 0
-    assert conf["recipe"]["symmetric"] is True and conf["pose"]["symmetric"] is True
+    assert conf["recipe"]["symmetric"] is True
+    assert conf["pose"]["symmetric"] is True
     jpath = _write(tmp_path / "det.json", json.dumps({"detector": {"width": 0.5}}))
     assert _dump(capsys, "detector", "--config", jpath)["detector"]["width"] == 0.5
 
@@ -102,7 +112,8 @@ def test_the_file_sets_fields_and_flags_override_it(tmp_path, capsys):
 def test_bad_files_are_one_line_errors_naming_file_and_key(tmp_path, capsys, text, needle):
     path = _write(tmp_path / "bad.yaml", text)
     err = _error(capsys, ["pose", "--config", path, "--dump-config"])
-    assert err.startswith("bopsurg: error: --config ") and str(path) in err
+    assert err.startswith("bopsurg: error: --config ")
+    assert str(path) in err
     assert needle in err
 
 
@@ -118,7 +129,8 @@ def test_a_configured_run_writes_its_config_and_refuses_another_on_resume(
     common = ["detector", str(dataset), "--split", "test", "--out", str(out), "--no-progress"]
     assert main(["train", *common, "--config", path]) == 0
     written = yaml.safe_load((out / "config.yaml").read_text())
-    assert written["detector"]["depth"] == 0.25 and written["augment"]["gamma_p"] == 0.5
+    assert written["detector"]["depth"] == 0.25
+    assert written["augment"]["gamma_p"] == 0.5
     info = json.loads((out / "detector.json").read_text())
     assert info["config"]["depth"] == 0.25
     assert info["meta"]["settings"]["recipe"]["augment"]["jpeg_p"] == 0.3
@@ -129,7 +141,8 @@ def test_a_configured_run_writes_its_config_and_refuses_another_on_resume(
     changed = _write(tmp_path / "other.yaml", (out / "config.yaml").read_text().replace(
         "depth: 0.25", "depth: 0.5"))  # fmt: skip
     err = _error(capsys, [*common, "--config", changed, "--epochs", "3"])
-    assert "other settings (model.depth)" in err and "0.25 -> 0.5" in err
+    assert "other settings (model.depth)" in err
+    assert "0.25 -> 0.5" in err
     err = _error(capsys, [*common, "--config", str(out / "config.yaml"), "--lr", "0.1"])
     assert "recipe.lr" in err
 
