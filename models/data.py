@@ -339,9 +339,8 @@ def load_detection_set(
         scales.append(scale)
         rows = [[cls_index[r.obj_id], *bbox_to_xyxy(r.bbox_visib, scale)] for r in per_image[key]]
         targets.append(torch.tensor(rows, dtype=torch.float32).reshape(-1, 5))
-    return DetectionSet(
-        paths, targets, keys, np.array(scales), tuple(classes), tuple(input_hw), cache_items
-    )
+    hw = (int(input_hw[0]), int(input_hw[1]))
+    return DetectionSet(paths, targets, keys, np.array(scales), tuple(classes), hw, cache_items)
 
 
 # --------------------------------------------------------------------------- pose head

@@ -159,6 +159,8 @@ def jpeg_round_trip(image: Tensor, quality: int) -> Tensor:
     if not ok:  # pragma: no cover - OpenCV always encodes a uint8 RGB image
         raise RuntimeError("cv2.imencode failed")
     bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    if bgr is None:  # pragma: no cover - a buffer OpenCV just encoded
+        raise RuntimeError("cv2.imdecode failed")
     out = torch.from_numpy(np.ascontiguousarray(bgr[..., ::-1])).permute(2, 0, 1)
     return out.to(image.device, image.dtype) / 255
 

@@ -184,7 +184,7 @@ def to_plain(obj: Any) -> Any:
 
 def dump_yaml(resolved: dict[str, Any]) -> str:
     """The resolved configuration as YAML text (sections in :data:`SECTIONS` order)."""
-    return yaml.safe_dump(to_plain(resolved), sort_keys=False, default_flow_style=None)
+    return str(yaml.safe_dump(to_plain(resolved), sort_keys=False, default_flow_style=None))
 
 
 def resolved(
