@@ -190,6 +190,8 @@ class BatchReader(Generic[T]):
     With ``num_workers > 0`` a ``DataLoader`` with that many persistent background processes
     reads up to ``2 * num_workers`` batches ahead (the processes, and their sample caches,
     live as long as the reader); with 0 the batches are read in this process when asked for.
+    The workers are *spawned* (a fresh interpreter each, started once per reader): a forked
+    child can inherit a lock held by one of OpenCV's or torch's threads and hang for good.
     Reading draws no random number, so the batches do not depend on ``num_workers``.
 
     Args:
@@ -211,7 +213,7 @@ class BatchReader(Generic[T]):
             self._loader = DataLoader(
                 _Keyed(data), batch_sampler=self._order, num_workers=num_workers,
                 collate_fn=_Collate(collate), worker_init_fn=_worker_init,
-                persistent_workers=True, prefetch_factor=2,
+                persistent_workers=True, prefetch_factor=2, multiprocessing_context="spawn",
             )  # fmt: skip
 
     def __call__(self, index_batches: Iterable[Sequence[int] | torch.Tensor]) -> Iterator[T]:
