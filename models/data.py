@@ -17,7 +17,9 @@ Both are map-style ``torch.utils.data.Dataset`` objects: :func:`batch_loader` re
 batches of an epoch through a ``DataLoader`` (``num_workers`` background processes, or the
 main process with 0) and stacks them into :class:`DetectionBatch` / :class:`PoseBatch`. Reading
 is deterministic (no random draw), so the batches are the same whatever the worker count.
-An optional LRU cache keeps the last ``cache_items`` decoded samples (per process).
+An optional LRU cache (:class:`LruCache`) keeps decoded samples within a memory budget
+(``cache_mb`` MiB per set and per process, by the samples' actual tensor bytes), so a set
+that fits is decoded once and then served from memory, while a larger one still streams.
 
 Whole scenes are held out for validation (every ``val_every``-th scene, deterministic), so
 validation frames never share a trajectory replay with training frames.
@@ -122,29 +124,94 @@ def list_instances(
     return out
 
 
-class LruCache(Generic[T]):
-    """The last ``capacity`` values by key (0: keeps nothing)."""
+#: Bytes per MiB: ``cache_mb`` budgets are in MiB.
+MIB = 2**20
 
-    def __init__(self, capacity: int = 0) -> None:
-        if capacity < 0:
-            raise ValueError(f"cache capacity must be >= 0, got {capacity}")
-        self.capacity = capacity
-        self._items: OrderedDict[Any, T] = OrderedDict()
+
+def sample_nbytes(value: Any) -> int:
+    """Bytes of the tensor/array data of ``value`` (``element_size() * nelement()`` of each
+    tensor, ``nbytes`` of each array), summed over nested tuples, lists and dict values;
+    anything else counts 0."""
+    if isinstance(value, torch.Tensor):
+        return int(value.element_size() * value.nelement())
+    if isinstance(value, np.ndarray):
+        return int(value.nbytes)
+    if isinstance(value, tuple | list):
+        return sum(sample_nbytes(v) for v in value)
+    if isinstance(value, dict):
+        return sum(sample_nbytes(v) for v in value.values())
+    return 0
+
+
+class LruCache(Generic[T]):
+    """Values by key within a memory budget, the least recently used evicted first.
+
+    A value is charged :func:`sample_nbytes` bytes. Storing one evicts the least recently
+    used values until the total fits ``max_bytes`` (and the count ``max_items``); a value
+    larger than the whole budget is returned but not stored. ``max_bytes == 0`` or
+    ``max_items == 0`` keeps nothing. Not shared between processes: each loader worker has
+    its own.
+
+    Args:
+        max_bytes: The budget, bytes (0: no cache).
+        max_items: At most this many values as well (None: no count limit).
+
+    Attributes:
+        nbytes: Bytes held now. hits, misses, evictions: counts since creation.
+    """
+
+    def __init__(self, max_bytes: int = 0, max_items: int | None = None) -> None:
+        if max_bytes < 0:
+            raise ValueError(f"cache budget must be >= 0 bytes, got {max_bytes}")
+        if max_items is not None and max_items < 0:
+            raise ValueError(f"cache item count must be >= 0, got {max_items}")
+        self.max_bytes, self.max_items = max_bytes, max_items
+        self._items: OrderedDict[Any, tuple[T, int]] = OrderedDict()
+        self.nbytes = self.hits = self.misses = self.evictions = 0
+
+    @property
+    def enabled(self) -> bool:
+        """Whether anything can be stored."""
+        return self.max_bytes > 0 and self.max_items != 0
 
     def get(self, key: Any, make: Callable[[], T]) -> T:
-        """The cached value of ``key``, or ``make()`` (stored, evicting the oldest)."""
-        if key in self._items:
+        """The cached value of ``key``, or ``make()`` (stored, evicting the least recently
+        used values to stay within the budget)."""
+        hit = self._items.get(key)
+        if hit is not None:
             self._items.move_to_end(key)
-            return self._items[key]
+            self.hits += 1
+            return hit[0]
+        self.misses += 1
         value = make()
-        if self.capacity:
-            self._items[key] = value
-            if len(self._items) > self.capacity:
-                self._items.popitem(last=False)
+        if not self.enabled:
+            return value
+        size = sample_nbytes(value)
+        if size > self.max_bytes:
+            return value
+        while self._items and (
+            self.nbytes + size > self.max_bytes
+            or (self.max_items is not None and len(self._items) >= self.max_items)
+        ):
+            _, (_, old) = self._items.popitem(last=False)
+            self.nbytes -= old
+            self.evictions += 1
+        self._items[key] = (value, size)
+        self.nbytes += size
         return value
+
+    def keys(self) -> list[Any]:
+        """The cached keys, least recently used first."""
+        return list(self._items)
 
     def __len__(self) -> int:
         return len(self._items)
+
+
+def _cache(cache_mb: float, cache_items: int | None) -> LruCache[Any]:
+    if cache_mb < 0:
+        raise ValueError(f"cache_mb must be >= 0, got {cache_mb}")
+    return LruCache(int(cache_mb * MIB), cache_items)
 
 
 class _Keyed(Dataset[tuple[int, Any]]):
@@ -277,11 +344,13 @@ class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
         scales: np.ndarray,
         classes: tuple[int, ...],
         input_hw: tuple[int, int],
-        cache_items: int = 0,
+        cache_mb: float = 0,
+        cache_items: int | None = None,
     ) -> None:
         self.paths, self.targets, self.keys = paths, targets, keys
         self.scales, self.classes, self.input_hw = scales, classes, input_hw
-        self.cache: LruCache[torch.Tensor] = LruCache(cache_items)
+        self.cache_mb, self.cache_items = cache_mb, cache_items
+        self.cache: LruCache[torch.Tensor] = _cache(cache_mb, cache_items)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -302,7 +371,7 @@ class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
         """The first ``n`` images (smoke tests)."""
         return DetectionSet(
             self.paths[:n], self.targets[:n], self.keys[:n], self.scales[:n], self.classes,
-            self.input_hw, self.cache.capacity,
+            self.input_hw, self.cache_mb, self.cache_items,
         )  # fmt: skip
 
     @staticmethod
@@ -323,11 +392,13 @@ def load_detection_set(
     *,
     min_visib: float = 0.1,
     progress: bool = True,
-    cache_items: int = 0,
+    cache_mb: float = 0,
+    cache_items: int | None = None,
 ) -> DetectionSet:
     """The index of the images of ``scene_ids`` with their ``bbox_visib`` boxes (scaled to the
     letterboxed input; image sizes come from the file headers). ``progress`` is accepted for
-    compatibility: nothing is decoded here."""
+    compatibility: nothing is decoded here. ``cache_mb`` (MiB) and ``cache_items`` bound the
+    set's :class:`LruCache` of decoded images (0 MiB: none)."""
     del progress
     per_image = list_instances(dataset, scene_ids, classes, min_visib)
     keys = list(per_image)
@@ -342,7 +413,9 @@ def load_detection_set(
         rows = [[cls_index[r.obj_id], *bbox_to_xyxy(r.bbox_visib, scale)] for r in per_image[key]]
         targets.append(torch.tensor(rows, dtype=torch.float32).reshape(-1, 5))
     hw = (int(input_hw[0]), int(input_hw[1]))
-    return DetectionSet(paths, targets, keys, np.array(scales), tuple(classes), hw, cache_items)
+    return DetectionSet(
+        paths, targets, keys, np.array(scales), tuple(classes), hw, cache_mb, cache_items
+    )
 
 
 # --------------------------------------------------------------------------- pose head
@@ -429,10 +502,12 @@ class PoseSet(Dataset[PoseSample]):
         records: list[InstanceRecord],
         image_hw: list[tuple[int, int]],
         context: int = 256,
-        cache_items: int = 0,
+        cache_mb: float = 0,
+        cache_items: int | None = None,
     ) -> None:
         self.dataset, self.records, self.context = dataset, records, context
-        self.cache: LruCache[PoseSample] = LruCache(cache_items)
+        self.cache_mb, self.cache_items = cache_mb, cache_items
+        self.cache: LruCache[PoseSample] = _cache(cache_mb, cache_items)
 
         def f32(a: Any) -> torch.Tensor:
             return torch.from_numpy(np.asarray(a, dtype=np.float32).copy())
@@ -487,7 +562,9 @@ class PoseSet(Dataset[PoseSample]):
     def head(self, n: int) -> PoseSet:
         """The first ``n`` instances (smoke tests)."""
         hw = [(int(h), int(w)) for h, w in self.image_hw[:n].tolist()]
-        return PoseSet(self.dataset, self.records[:n], hw, self.context, self.cache.capacity)
+        return PoseSet(
+            self.dataset, self.records[:n], hw, self.context, self.cache_mb, self.cache_items
+        )
 
 
 def load_pose_set(
@@ -499,11 +576,13 @@ def load_pose_set(
     min_visib: float = 0.1,
     min_pixels: int = 16,
     progress: bool = True,
-    cache_items: int = 0,
+    cache_mb: float = 0,
+    cache_items: int | None = None,
 ) -> PoseSet:
     """The index of every instance of ``obj_id`` with ``visib_fract >= min_visib`` and at
     least ``min_pixels`` visible pixels (``px_count_visib`` of scene_gt_info.json). Nothing is
-    decoded here; ``progress`` is accepted for compatibility.
+    decoded here; ``progress`` is accepted for compatibility. ``cache_mb`` (MiB) and
+    ``cache_items`` bound the set's :class:`LruCache` of decoded samples (0 MiB: none).
 
     Raises:
         DatasetError: No such instance.
@@ -525,4 +604,4 @@ def load_pose_set(
             f"{list(scene_ids)[:5]}...",
             path=dataset.split_dir,
         )
-    return PoseSet(dataset, records, image_hw, context, cache_items)
+    return PoseSet(dataset, records, image_hw, context, cache_mb, cache_items)
