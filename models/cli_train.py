@@ -35,8 +35,11 @@ resumes after the last finished epoch and ends with the same weights. Validation
 layout, ROI 256, 64 regions), test. Seeded: the same command gives the same weights on the
 same machine and device, whatever --workers.
 
-Images are read from disk per batch (memory does not grow with the dataset); --workers N
-reads ahead in N background processes.
+Images are read from disk and decoded when first needed; each set (training, validation)
+keeps its decoded samples in memory up to loader.cache_mb MiB (default 4096, in each
+process that reads it: the training process and each of --workers N's background
+processes), so a set that fits is decoded once, a larger one streams (least recently used
+samples out first). Neither changes the weights.
 
 --config FILE (YAML or JSON) sets every field of the model config (sizes, loss weights, DZI
 jitter ...), the recipe (epochs, lr, batch_size, hsv/flip/scale augmentations ...), the
@@ -63,8 +66,9 @@ a config file (pose.yaml; every key optional, unknown keys are errors):
     preset: domain       # off (default) or domain, then overrides:
     blur_p: 0.5
     blur_sigma: [0.5, 2.0]
-  loader:
-    num_workers: 1
+  loader:                # how samples are read (never changes the weights)
+    num_workers: 1       # background reader processes
+    cache_mb: 4096       # decoded samples kept, MiB per set and process (0: decode each time)
 
 examples:
   bopsurg train pose --dump-config --preset paper > pose.yaml

@@ -15,7 +15,7 @@ One file configures one run of ``bopsurg train detector|pose --config FILE``::
       jpeg_p: 0.5
     loader:              # how samples are read; does not change the result
       num_workers: 1
-      cache_items: 0
+      cache_mb: 4096     # decoded samples kept in memory, MiB per set and process (0: none)
 
 Every section and key is optional (defaults: the preset's). Unknown keys are errors naming the
 file and the key. Command-line flags override the file. The resolved configuration (every
@@ -46,19 +46,35 @@ D = TypeVar("D")
 class LoaderConfig:
     """How training samples are read (not part of the result: a resume may change it).
 
+    Each set (training, validation) caches its decoded samples, least recently used evicted
+    first, within ``cache_mb`` in every process that reads it: the training process, and
+    each of the ``num_workers`` processes for the training set (so up to
+    ``(num_workers + 1) * cache_mb`` in all). A sample costs about 0.25 MB (detector,
+    320x256 input) or 0.65 MB (pose, 256-px context crop), so the default holds about 6,000
+    pose instances: a set that fits is decoded once, a larger one streams from disk.
+
     Attributes:
         num_workers: Background loader processes that read batches ahead (0: read in the
             training process).
-        cache_items: Decoded samples kept in an LRU cache per process (0: none; each costs
-            about 0.25 MB (detector, 320x256) or 0.65 MB (pose, 256-px context)).
+        cache_mb: The cache budget per set and per process, MiB (2**20 bytes) of decoded
+            tensors (0: no cache, every sample is decoded every epoch).
+        cache_items: At most this many cached samples per set and process as well (None:
+            no count limit; 0: no cache). Files written before ``cache_mb`` existed hold
+            ``cache_items: 0``, and keep meaning no cache.
     """
 
     num_workers: int = 0
-    cache_items: int = 0
+    cache_mb: int = 4096
+    cache_items: int | None = None
 
     def __post_init__(self) -> None:
-        if self.num_workers < 0 or self.cache_items < 0:
-            raise ValueError("loader.num_workers and loader.cache_items must be >= 0")
+        if self.num_workers < 0 or self.cache_mb < 0:
+            raise ValueError("loader.num_workers and loader.cache_mb must be >= 0")
+        items = self.cache_items
+        if items is not None and (isinstance(items, bool) or not isinstance(items, int)):
+            raise ValueError(f"loader.cache_items must be null or an integer, got {items!r}")
+        if items is not None and items < 0:
+            raise ValueError("loader.cache_items must be >= 0 (or null: no count limit)")
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:

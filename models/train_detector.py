@@ -151,13 +151,13 @@ def train_detector(
     write_config(out, resolved("detector", preset, seed, cfg, recipe, loader))
     train = load_detection_set(
         ds, splits.train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
-        cache_items=loader.cache_items,
+        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
     )  # fmt: skip
     if max_images is not None:
         train = train.head(max_images)
     val = load_detection_set(
         splits.val, splits.val_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
-        cache_items=loader.cache_items,
+        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
     )  # fmt: skip
     log.info("detector: %d train images, %d validation images", len(train), len(val))
     model = YoloxDetector(cfg).to(dev)

@@ -278,13 +278,15 @@ def train_pose(
     write_config(out, resolved("pose", preset, seed, cfg, recipe, loader))
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
     train = load_pose_set(
-        ds, splits.train_ids, obj_id, min_visib=recipe.min_visib, cache_items=loader.cache_items
-    )
+        ds, splits.train_ids, obj_id, min_visib=recipe.min_visib,
+        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+    )  # fmt: skip
     if max_instances is not None:
         train = train.head(max_instances)
     val = load_pose_set(
-        splits.val, splits.val_ids, obj_id, min_visib=0.3, cache_items=loader.cache_items
-    )
+        splits.val, splits.val_ids, obj_id, min_visib=0.3,
+        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+    )  # fmt: skip
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
 
     model = GdrPoseNet(cfg).to(dev)

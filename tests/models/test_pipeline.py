@@ -117,6 +117,19 @@ def test_loader_workers_do_not_change_the_weights(dataset, trained, tmp_path):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
 
 
+def test_the_sample_cache_does_not_change_the_weights(dataset, trained, tmp_path):
+    """``trained`` read through the default cache (the set fits: decoded once); without a
+    cache (every sample decoded every epoch, the streaming loader) the weights are the same."""
+    _, pose = trained
+    conf = tmp_path / "nocache.yaml"
+    conf.write_text("loader: {cache_mb: 0}\n", encoding="utf-8")
+    out = tmp_path / "pose_nocache"
+    assert _train("pose", dataset, out, 2, "--config", str(conf)) == 0
+    a, b = load_tensors(pose), load_tensors(out / "pose.pt")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+
+
 def test_a_resumed_run_with_photometric_augmentations_ends_with_the_same_weights(
     dataset, trained, tmp_path
 ):

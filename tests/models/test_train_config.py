@@ -56,6 +56,7 @@ def test_dump_config_gives_every_field_and_round_trips(tmp_path, capsys):
     assert conf["pose"]["w_region"] == 1.0
     assert conf["recipe"]["epochs"] == 40
     assert conf["augment"]["jpeg_p"] == 0.0
+    assert conf["loader"] == {"num_workers": 0, "cache_mb": 4096, "cache_items": None}
     again = _dump(capsys, "pose", "--config", _write(tmp_path / "c.yaml", yaml.safe_dump(conf)))
     assert again == conf
     det = _dump(capsys, "detector", "--preset", "s")
@@ -81,6 +82,8 @@ def test_the_file_sets_fields_and_flags_override_it(tmp_path, capsys):
     assert conf["augment"]["blur_p"] == 0.3
     assert conf["augment"]["blur_sigma"] == [1.0, 2.0]
     assert conf["loader"]["num_workers"] == 1
+    old = _write(tmp_path / "old.yaml", "loader: {num_workers: 0, cache_items: 0}\n")
+    assert _dump(capsys, "pose", "--config", old)["loader"]["cache_items"] == 0  # still no cache
     flags = ["--epochs", "2", "--lr", "0.5", "--seed", "0", "--workers", "0", "--symmetric"]
     conf = _dump(capsys, "pose", "--config", path, *flags)
     assert conf["recipe"]["epochs"] == 2
@@ -107,6 +110,10 @@ def test_the_file_sets_fields_and_flags_override_it(tmp_path, capsys):
         ("augment: {preset: heavy}\n", "unknown augment preset"),
         ("[1, 2]\n", "expected a mapping"),
         ("pose: {roi_in: [\n", "not valid YAML"),
+        ("loader: {cache_mb: -1}\n", "loader.num_workers and loader.cache_mb must be >= 0"),
+        ("loader: {cache_mb: 1.5}\n", "loader.cache_mb: expected an integer"),
+        ("loader: {cache_items: many}\n", "loader.cache_items must be null or an integer"),
+        ("loader: {cache_items: -2}\n", "loader.cache_items must be >= 0"),
     ],
 )
 def test_bad_files_are_one_line_errors_naming_file_and_key(tmp_path, capsys, text, needle):
