@@ -1,15 +1,25 @@
-"""Training data from a BOP split, decoded once into memory.
+"""Training data from a BOP split, streamed from disk: an index in memory, images per batch.
 
-Two views of the same split:
+An index of the split (per image or per GT instance: ids, camera, pose, box, a few numbers)
+is built from the JSON annotations; the pixels are read and decoded (OpenCV) only when a
+sample is asked for, so memory does not grow with the number of images. Two views:
 
-- :class:`DetectionSet` (detector): each image letterboxed to the network input
-  (uint8), with its ``bbox_visib`` boxes.
+- :class:`DetectionSet` (detector): per image, the image letterboxed to the network input
+  (uint8) with its ``bbox_visib`` boxes.
 - :class:`PoseSet` (pose head): per GT instance, a square *context crop* around its visible
   box (2.5 × the box's longer side, resampled to ``context`` px) holding RGB, the visible
   mask and the object-frame coordinates of every visible pixel. The coordinates are computed
-  here from the rendered depth and the GT pose (``X = R^T (z K^-1 [u, v, 1] - t)``), so
-  nothing beyond the BOP files is stored on disk, and the crop is large enough for every
-  dynamic zoom-in (DZI) jitter to be cut from it later.
+  from the rendered depth and the GT pose (``X = R^T (z K^-1 [u, v, 1] - t)``), so nothing
+  beyond the BOP files is stored on disk, and the crop is large enough for every dynamic
+  zoom-in (DZI) jitter to be cut from it later.
+
+Both are map-style ``torch.utils.data.Dataset`` objects: :func:`batch_loader` reads the index
+batches of an epoch through a ``DataLoader`` (``num_workers`` background processes, or the
+main process with 0) and stacks them into :class:`DetectionBatch` / :class:`PoseBatch`. Reading
+is deterministic (no random draw), so the batches are the same whatever the worker count.
+An optional LRU cache (:class:`LruCache`) keeps decoded samples within a memory budget
+(``cache_mb`` MiB per set and per process, by the samples' actual tensor bytes), so a set
+that fits is decoded once and then served from memory, while a larger one still streams.
 
 Whole scenes are held out for validation (every ``val_every``-th scene, deterministic), so
 validation frames never share a trajectory replay with training frames.
@@ -18,17 +28,19 @@ validation frames never share a trajectory replay with training frames.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Generic, TypeVar
 
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
+from torch.utils.data import DataLoader, Dataset
 
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.images import load_depth, load_mask, load_rgb
+from bopsurg.bop.images import image_size, load_depth, load_mask, load_rgb
 from bopsurg.errors import DatasetError
 from bopsurg.models.detector.letterbox import letterbox
 
@@ -37,6 +49,8 @@ log = logging.getLogger(__name__)
 #: Context crop side relative to the visible box's longer side: covers the largest DZI crop
 #: (1.5 pad x 1.25 scale) with its largest centre shift (0.25 of the box).
 CONTEXT_RATIO = 2.5
+
+T = TypeVar("T")
 
 
 def split_scenes(
@@ -71,6 +85,7 @@ class InstanceRecord:
     t: np.ndarray  # (3,) mm
     bbox_visib: tuple[int, int, int, int]  # x, y, w, h (w = x_max - x_min, BOP)
     visib_fract: float
+    px_count_visib: int = -1  # visible-mask pixels (scene_gt_info.json); -1: unknown
 
 
 def list_instances(
@@ -102,17 +117,184 @@ def list_instances(
                 recs.append(
                     InstanceRecord(
                         sid, im_id, gt_id, gt.obj_id, scene.camera[im_id].K, gt.R, gt.t,
-                        info.bbox_visib, info.visib_fract,
+                        info.bbox_visib, info.visib_fract, int(info.px_count_visib),
                     )
                 )  # fmt: skip
             out[(sid, im_id)] = recs
     return out
 
 
-def _map(fn, items, desc: str, progress: bool, workers: int = 2) -> list:
-    # Decoding is in OpenCV (releases the GIL): threads give a near-linear speed-up.
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(tqdm(pool.map(fn, items), total=len(items), desc=desc, disable=not progress))
+#: Bytes per MiB: ``cache_mb`` budgets are in MiB.
+MIB = 2**20
+
+
+def sample_nbytes(value: Any) -> int:
+    """Bytes of the tensor/array data of ``value`` (``element_size() * nelement()`` of each
+    tensor, ``nbytes`` of each array), summed over nested tuples, lists and dict values;
+    anything else counts 0."""
+    if isinstance(value, torch.Tensor):
+        return int(value.element_size() * value.nelement())
+    if isinstance(value, np.ndarray):
+        return int(value.nbytes)
+    if isinstance(value, tuple | list):
+        return sum(sample_nbytes(v) for v in value)
+    if isinstance(value, dict):
+        return sum(sample_nbytes(v) for v in value.values())
+    return 0
+
+
+class LruCache(Generic[T]):
+    """Values by key within a memory budget, the least recently used evicted first.
+
+    A value is charged :func:`sample_nbytes` bytes. Storing one evicts the least recently
+    used values until the total fits ``max_bytes`` (and the count ``max_items``); a value
+    larger than the whole budget is returned but not stored. ``max_bytes == 0`` or
+    ``max_items == 0`` keeps nothing. Not shared between processes: each loader worker has
+    its own.
+
+    Args:
+        max_bytes: The budget, bytes (0: no cache).
+        max_items: At most this many values as well (None: no count limit).
+
+    Attributes:
+        nbytes: Bytes held now. hits, misses, evictions: counts since creation.
+    """
+
+    def __init__(self, max_bytes: int = 0, max_items: int | None = None) -> None:
+        if max_bytes < 0:
+            raise ValueError(f"cache budget must be >= 0 bytes, got {max_bytes}")
+        if max_items is not None and max_items < 0:
+            raise ValueError(f"cache item count must be >= 0, got {max_items}")
+        self.max_bytes, self.max_items = max_bytes, max_items
+        self._items: OrderedDict[Any, tuple[T, int]] = OrderedDict()
+        self.nbytes = self.hits = self.misses = self.evictions = 0
+
+    @property
+    def enabled(self) -> bool:
+        """Whether anything can be stored."""
+        return self.max_bytes > 0 and self.max_items != 0
+
+    def get(self, key: Any, make: Callable[[], T]) -> T:
+        """The cached value of ``key``, or ``make()`` (stored, evicting the least recently
+        used values to stay within the budget)."""
+        hit = self._items.get(key)
+        if hit is not None:
+            self._items.move_to_end(key)
+            self.hits += 1
+            return hit[0]
+        self.misses += 1
+        value = make()
+        if not self.enabled:
+            return value
+        size = sample_nbytes(value)
+        if size > self.max_bytes:
+            return value
+        while self._items and (
+            self.nbytes + size > self.max_bytes
+            or (self.max_items is not None and len(self._items) >= self.max_items)
+        ):
+            _, (_, old) = self._items.popitem(last=False)
+            self.nbytes -= old
+            self.evictions += 1
+        self._items[key] = (value, size)
+        self.nbytes += size
+        return value
+
+    def keys(self) -> list[Any]:
+        """The cached keys, least recently used first."""
+        return list(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+def _cache(cache_mb: float, cache_items: int | None) -> LruCache[Any]:
+    if cache_mb < 0:
+        raise ValueError(f"cache_mb must be >= 0, got {cache_mb}")
+    return LruCache(int(cache_mb * MIB), cache_items)
+
+
+class _Keyed(Dataset[tuple[int, Any]]):
+    """``(i, data[i])``: a sample with its index (what a loader worker reads)."""
+
+    def __init__(self, data: Dataset[Any]) -> None:
+        self.data = data
+
+    def __getitem__(self, i: int) -> tuple[int, Any]:
+        return i, self.data[i]
+
+
+class _Order:
+    """The batch sampler of a persistent loader: yields the batches set for this epoch (it
+    runs in the training process; the workers only read)."""
+
+    def __init__(self) -> None:
+        self.batches: list[list[int]] = []
+
+    def __iter__(self) -> Iterator[list[int]]:
+        return iter(self.batches)
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+
+class _Collate(Generic[T]):
+    def __init__(self, collate: Callable[[list[Any], list[int]], T]) -> None:
+        self.collate = collate
+
+    def __call__(self, keyed: list[tuple[int, Any]]) -> T:
+        return self.collate([s for _, s in keyed], [i for i, _ in keyed])
+
+
+def _worker_init(_: int) -> None:
+    # one OpenCV thread per loader process: the trainer's threads keep the cores
+    cv2.setNumThreads(1)
+
+
+class BatchReader(Generic[T]):
+    """Reads index batches of a dataset, in order, as collated batches.
+
+    With ``num_workers > 0`` a ``DataLoader`` with that many persistent background processes
+    reads up to ``2 * num_workers`` batches ahead (the processes, and their sample caches,
+    live as long as the reader); with 0 the batches are read in this process when asked for.
+    The workers are *spawned* (a fresh interpreter each, started once per reader): a forked
+    child can inherit a lock held by one of OpenCV's or torch's threads and hang for good.
+    Reading draws no random number, so the batches do not depend on ``num_workers``.
+
+    Args:
+        data: A map-style dataset (``data[i]`` reads sample i from disk).
+        collate: Stacks the samples of one batch: ``(samples, indices) -> batch``.
+        num_workers: Background loader processes.
+    """
+
+    def __init__(
+        self,
+        data: Dataset[Any],
+        collate: Callable[[list[Any], list[int]], T],
+        num_workers: int = 0,
+    ) -> None:
+        self.data, self.collate, self.num_workers = data, collate, num_workers
+        self._order = _Order()
+        self._loader: DataLoader[Any] | None = None
+        if num_workers > 0:
+            self._loader = DataLoader(
+                _Keyed(data), batch_sampler=self._order, num_workers=num_workers,
+                collate_fn=_Collate(collate), worker_init_fn=_worker_init,
+                persistent_workers=True, prefetch_factor=2, multiprocessing_context="spawn",
+            )  # fmt: skip
+
+    def __call__(self, index_batches: Iterable[Sequence[int] | torch.Tensor]) -> Iterator[T]:
+        """The batches of ``index_batches`` (index lists or tensors), in that order."""
+        batches = [[int(i) for i in b] for b in index_batches]
+        if self._loader is None:
+            return (self.collate([self.data[i] for i in b], b) for b in batches)
+        self._order.batches = batches
+        return iter(self._loader)
+
+    def all(self, batch_size: int) -> Iterator[T]:
+        """Every sample in index order, in batches of ``batch_size`` (validation)."""
+        n = len(self.data)  # type: ignore[arg-type]
+        return self(list(range(i, min(i + batch_size, n))) for i in range(0, n, batch_size))
 
 
 # --------------------------------------------------------------------------- detector
@@ -126,25 +308,80 @@ def bbox_to_xyxy(bbox: Sequence[float], scale: float = 1.0) -> list[float]:
 
 
 @dataclass
-class DetectionSet:
-    """Letterboxed images and their boxes.
+class DetectionBatch:
+    """One batch of :class:`DetectionSet`.
 
     Attributes:
-        images: (N, 3, h, w) uint8 RGB at the network input size.
+        idx: (B,) sample indices.
+        images: (B, 3, h, w) uint8 RGB at the network input size.
         targets: per image (n, 5) float32 ``[class, x1, y1, x2, y2]`` in input px.
-        keys: (scene_id, im_id) per image.
-        scales: (N,) input px per image px.
-        classes: object id of each class index.
     """
 
+    idx: torch.Tensor
     images: torch.Tensor
     targets: list[torch.Tensor]
-    keys: list[tuple[int, int]]
-    scales: np.ndarray
-    classes: tuple[int, ...]
+
+
+class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
+    """Letterboxed images (read on demand) and their boxes (in memory).
+
+    ``data[i]`` is ``(image (3, h, w) uint8 RGB at the network input, targets (n, 5))``.
+
+    Attributes:
+        targets: per image (n, 5) float32 ``[class, x1, y1, x2, y2]`` in input px.
+        keys: (scene_id, im_id) per image.
+        paths: the RGB file of each image.
+        scales: (N,) input px per image px.
+        classes: object id of each class index.
+        input_hw: the network input (h, w), px.
+    """
+
+    def __init__(
+        self,
+        paths: list[Path],
+        targets: list[torch.Tensor],
+        keys: list[tuple[int, int]],
+        scales: np.ndarray,
+        classes: tuple[int, ...],
+        input_hw: tuple[int, int],
+        cache_mb: float = 0,
+        cache_items: int | None = None,
+    ) -> None:
+        self.paths, self.targets, self.keys = paths, targets, keys
+        self.scales, self.classes, self.input_hw = scales, classes, input_hw
+        self.cache_mb, self.cache_items = cache_mb, cache_items
+        self.cache: LruCache[torch.Tensor] = _cache(cache_mb, cache_items)
 
     def __len__(self) -> int:
         return len(self.keys)
+
+    def image(self, i: int) -> torch.Tensor:
+        """(3, h, w) uint8 letterboxed image ``i``, decoded from disk (or the cache)."""
+
+        def read() -> torch.Tensor:
+            im, _ = letterbox(load_rgb(self.paths[i]), self.input_hw)
+            return torch.from_numpy(np.ascontiguousarray(im.transpose(2, 0, 1)))
+
+        return self.cache.get(i, read)
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.image(i), self.targets[i]
+
+    def head(self, n: int) -> DetectionSet:
+        """The first ``n`` images (smoke tests)."""
+        return DetectionSet(
+            self.paths[:n], self.targets[:n], self.keys[:n], self.scales[:n], self.classes,
+            self.input_hw, self.cache_mb, self.cache_items,
+        )  # fmt: skip
+
+    @staticmethod
+    def collate(samples: list[tuple[torch.Tensor, torch.Tensor]], idx: list[int]) -> DetectionBatch:
+        """Stack the samples of one batch."""
+        return DetectionBatch(
+            torch.tensor(idx, dtype=torch.int64),
+            torch.stack([s[0] for s in samples]),
+            [s[1] for s in samples],
+        )
 
 
 def load_detection_set(
@@ -155,46 +392,53 @@ def load_detection_set(
     *,
     min_visib: float = 0.1,
     progress: bool = True,
+    cache_mb: float = 0,
+    cache_items: int | None = None,
 ) -> DetectionSet:
-    """Letterbox every image of ``scene_ids`` and collect its ``bbox_visib`` boxes."""
+    """The index of the images of ``scene_ids`` with their ``bbox_visib`` boxes (scaled to the
+    letterboxed input; image sizes come from the file headers). ``progress`` is accepted for
+    compatibility: nothing is decoded here. ``cache_mb`` (MiB) and ``cache_items`` bound the
+    set's :class:`LruCache` of decoded images (0 MiB: none)."""
+    del progress
     per_image = list_instances(dataset, scene_ids, classes, min_visib)
     keys = list(per_image)
     cls_index = {o: k for k, o in enumerate(classes)}
-
-    def load(key: tuple[int, int]) -> tuple[np.ndarray, float]:
-        rgb = load_rgb(dataset.scene(key[0]).rgb_path(key[1]))
-        return letterbox(rgb, input_hw)
-
-    loaded = _map(load, keys, "load images", progress)
-    images = torch.from_numpy(np.stack([im for im, _ in loaded])).permute(0, 3, 1, 2).contiguous()
-    scales = np.array([s for _, s in loaded])
+    paths = [dataset.scene(sid).rgb_path(im_id) for sid, im_id in keys]
+    scales = []
     targets = []
-    for key, scale in zip(keys, scales, strict=True):
+    for key, path in zip(keys, paths, strict=True):
+        w, h = image_size(path)
+        scale = min(input_hw[0] / h, input_hw[1] / w)
+        scales.append(scale)
         rows = [[cls_index[r.obj_id], *bbox_to_xyxy(r.bbox_visib, scale)] for r in per_image[key]]
         targets.append(torch.tensor(rows, dtype=torch.float32).reshape(-1, 5))
-    return DetectionSet(images, targets, keys, scales, tuple(classes))
+    hw = (int(input_hw[0]), int(input_hw[1]))
+    return DetectionSet(
+        paths, targets, keys, np.array(scales), tuple(classes), hw, cache_mb, cache_items
+    )
 
 
 # --------------------------------------------------------------------------- pose head
 
 
 @dataclass
-class PoseSet:
-    """Context crops of GT instances, with everything the pose losses need.
+class PoseBatch:
+    """One batch of :class:`PoseSet`: context crops and everything the pose losses need.
 
     Attributes:
-        rgb: (N, 3, C, C) uint8 context crops.
-        mask: (N, C, C) bool visible masks.
-        xyz: (N, 3, C, C) float16 object-frame coordinates (mm) of visible pixels, 0 elsewhere.
-        ctx: (N, 3) float32 ``(a, cx, cy)``: context px = (image px - (cx, cy)) * a + C/2.
-        K: (N, 3, 3) float32 camera matrices (image px).
-        R: (N, 3, 3) float32 GT rotations; t: (N, 3) float32 GT translations (mm).
-        bbox: (N, 4) float32 visible boxes ``(x, y, w, h)`` in image px (pixel edges:
+        idx: (B,) sample indices.
+        rgb: (B, 3, C, C) uint8 context crops.
+        mask: (B, C, C) bool visible masks.
+        xyz: (B, 3, C, C) float16 object-frame coordinates (mm) of visible pixels, 0 elsewhere.
+        ctx: (B, 3) float32 ``(a, cx, cy)``: context px = (image px - (cx, cy)) * a + C/2.
+        K: (B, 3, 3) float32 camera matrices (image px).
+        R: (B, 3, 3) float32 GT rotations; t: (B, 3) float32 GT translations (mm).
+        bbox: (B, 4) float32 visible boxes ``(x, y, w, h)`` in image px (pixel edges:
             w = x_max - x_min + 1).
-        image_hw: (N, 2) int64 full-image size.
-        records: the source instances.
+        image_hw: (B, 2) int64 full-image size.
     """
 
+    idx: torch.Tensor
     rgb: torch.Tensor
     mask: torch.Tensor
     xyz: torch.Tensor
@@ -204,10 +448,6 @@ class PoseSet:
     t: torch.Tensor
     bbox: torch.Tensor
     image_hw: torch.Tensor
-    records: list[InstanceRecord]
-
-    def __len__(self) -> int:
-        return len(self.records)
 
 
 def object_coordinates(
@@ -226,7 +466,7 @@ def object_coordinates(
 
 
 def context_affine(bbox: Sequence[int], context: int) -> tuple[float, float, float]:
-    """``(a, cx, cy)`` of the context crop around a BOP visible box (see :class:`PoseSet`)."""
+    """``(a, cx, cy)`` of the context crop around a BOP visible box (see :class:`PoseBatch`)."""
     x, y, w, h = bbox
     cx, cy = x + w / 2.0, y + h / 2.0  # pixel-index centre of pixels x..x+w
     side = CONTEXT_RATIO * (max(w, h) + 1)
@@ -238,6 +478,95 @@ def _warp(img: np.ndarray, a: float, cx: float, cy: float, context: int, interp:
     return cv2.warpAffine(img, affine, (context, context), flags=interp, borderValue=0)
 
 
+#: One pose sample: context RGB (3, C, C) uint8, mask (C, C) bool, xyz (3, C, C) float16.
+PoseSample = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+class PoseSet(Dataset[PoseSample]):
+    """Context crops of GT instances, cut from the images on demand.
+
+    In memory, per instance: the record, the context affine and the pose (a few hundred
+    bytes). ``data[i]`` reads the RGB, depth and visible mask of instance i's image, computes
+    its object coordinates and cuts the three context crops (see :class:`PoseBatch`).
+
+    Attributes:
+        ctx: (N, 3) float32 ``(a, cx, cy)`` context affines.
+        K, R, t, bbox, image_hw: as in :class:`PoseBatch`, for all N instances.
+        records: the source instances.
+        context: the context crop side C, px.
+    """
+
+    def __init__(
+        self,
+        dataset: BopDataset,
+        records: list[InstanceRecord],
+        image_hw: list[tuple[int, int]],
+        context: int = 256,
+        cache_mb: float = 0,
+        cache_items: int | None = None,
+    ) -> None:
+        self.dataset, self.records, self.context = dataset, records, context
+        self.cache_mb, self.cache_items = cache_mb, cache_items
+        self.cache: LruCache[PoseSample] = _cache(cache_mb, cache_items)
+
+        def f32(a: Any) -> torch.Tensor:
+            return torch.from_numpy(np.asarray(a, dtype=np.float32).copy())
+
+        self.ctx = f32([context_affine(r.bbox_visib, context) for r in records]).reshape(-1, 3)
+        self.K = f32([r.K for r in records]).reshape(-1, 3, 3)
+        self.R = f32([r.R for r in records]).reshape(-1, 3, 3)
+        self.t = f32([r.t for r in records]).reshape(-1, 3)
+        self.bbox = f32(
+            [[b[0], b[1], b[2] + 1, b[3] + 1] for b in (r.bbox_visib for r in records)]
+        ).reshape(-1, 4)
+        self.image_hw = torch.tensor(image_hw, dtype=torch.int64).reshape(-1, 2)
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, i: int) -> PoseSample:
+        return self.cache.get(i, lambda: self._read(i))
+
+    def _read(self, i: int) -> PoseSample:
+        r, C = self.records[i], self.context
+        scene = self.dataset.scene(r.scene_id)
+        cam = scene.camera[r.im_id]
+        if cam.depth_scale is None:
+            raise DatasetError("depth_scale missing", path=scene.scene_dir / "scene_camera.json")
+        rgb = load_rgb(scene.rgb_path(r.im_id))
+        depth = load_depth(scene.depth_path(r.im_id)) * cam.depth_scale
+        mask = load_mask(scene.mask_visib_path(r.im_id, r.gt_id)) & (depth > 0)
+        xyz = object_coordinates(depth, mask, r.K, r.R, r.t)
+        a, cx, cy = (float(v) for v in self.ctx[i])
+        c_rgb = _warp(rgb, a, cx, cy, C, cv2.INTER_LINEAR)
+        c_mask = _warp(mask.astype(np.uint8), a, cx, cy, C, cv2.INTER_NEAREST) > 0
+        c_xyz = _warp(xyz, a, cx, cy, C, cv2.INTER_NEAREST)
+        # layout changes in NumPy: torch's thread pool is slow for them on a busy machine
+        return (
+            torch.from_numpy(np.ascontiguousarray(c_rgb.transpose(2, 0, 1))),
+            torch.from_numpy(c_mask),
+            torch.from_numpy(np.ascontiguousarray(c_xyz.transpose(2, 0, 1)).astype(np.float16)),
+        )
+
+    def collate(self, samples: list[PoseSample], idx: list[int]) -> PoseBatch:
+        """Stack the samples of one batch with their poses and boxes."""
+        ix = torch.tensor(idx, dtype=torch.int64)
+        return PoseBatch(
+            ix,
+            torch.stack([s[0] for s in samples]),
+            torch.stack([s[1] for s in samples]),
+            torch.stack([s[2] for s in samples]),
+            self.ctx[ix], self.K[ix], self.R[ix], self.t[ix], self.bbox[ix], self.image_hw[ix],
+        )  # fmt: skip
+
+    def head(self, n: int) -> PoseSet:
+        """The first ``n`` instances (smoke tests)."""
+        hw = [(int(h), int(w)) for h, w in self.image_hw[:n].tolist()]
+        return PoseSet(
+            self.dataset, self.records[:n], hw, self.context, self.cache_mb, self.cache_items
+        )
+
+
 def load_pose_set(
     dataset: BopDataset,
     scene_ids: Sequence[int],
@@ -247,54 +576,32 @@ def load_pose_set(
     min_visib: float = 0.1,
     min_pixels: int = 16,
     progress: bool = True,
+    cache_mb: float = 0,
+    cache_items: int | None = None,
 ) -> PoseSet:
-    """Context crops of every instance of ``obj_id`` with ``visib_fract >= min_visib`` and at
-    least ``min_pixels`` visible pixels."""
+    """The index of every instance of ``obj_id`` with ``visib_fract >= min_visib`` and at
+    least ``min_pixels`` visible pixels (``px_count_visib`` of scene_gt_info.json). Nothing is
+    decoded here; ``progress`` is accepted for compatibility. ``cache_mb`` (MiB) and
+    ``cache_items`` bound the set's :class:`LruCache` of decoded samples (0 MiB: none).
+
+    Raises:
+        DatasetError: No such instance.
+    """
+    del progress
     per_image = list_instances(dataset, scene_ids, [obj_id], min_visib)
-    items = [(key, recs) for key, recs in per_image.items() if recs]
-
-    def load(item):
-        (sid, im_id), recs = item
-        scene = dataset.scene(sid)
-        rgb = load_rgb(scene.rgb_path(im_id))
-        cam = scene.camera[im_id]
-        if cam.depth_scale is None:
-            raise DatasetError("depth_scale missing", path=scene.scene_dir / "scene_camera.json")
-        depth = load_depth(scene.depth_path(im_id)) * cam.depth_scale
-        out = []
-        for r in recs:
-            mask = load_mask(scene.mask_visib_path(im_id, r.gt_id)) & (depth > 0)
-            if mask.sum() < min_pixels:
-                continue
-            xyz = object_coordinates(depth, mask, r.K, r.R, r.t)
-            a, cx, cy = context_affine(r.bbox_visib, context)
-            c_rgb = _warp(rgb, a, cx, cy, context, cv2.INTER_LINEAR)
-            c_mask = _warp(mask.astype(np.uint8), a, cx, cy, context, cv2.INTER_NEAREST) > 0
-            c_xyz = _warp(xyz, a, cx, cy, context, cv2.INTER_NEAREST)
-            out.append((r, c_rgb, c_mask, c_xyz, (a, cx, cy), rgb.shape[:2]))
-        return out
-
-    loaded = [x for group in _map(load, items, "load instances", progress) for x in group]
-    if not loaded:
+    records: list[InstanceRecord] = []
+    image_hw: list[tuple[int, int]] = []
+    for (sid, im_id), recs in per_image.items():
+        recs = [r for r in recs if r.px_count_visib < 0 or r.px_count_visib >= min_pixels]
+        if not recs:
+            continue
+        w, h = image_size(dataset.scene(sid).rgb_path(im_id))
+        records += recs
+        image_hw += [(h, w)] * len(recs)
+    if not records:
         raise DatasetError(
             f"no instance of obj_id {obj_id} with visib_fract >= {min_visib} in scenes "
             f"{list(scene_ids)[:5]}...",
             path=dataset.split_dir,
         )
-    recs = [x[0] for x in loaded]
-
-    def f32(a) -> torch.Tensor:
-        return torch.from_numpy(np.asarray(a, dtype=np.float32))
-
-    return PoseSet(
-        rgb=torch.from_numpy(np.stack([x[1] for x in loaded])).permute(0, 3, 1, 2).contiguous(),
-        mask=torch.from_numpy(np.stack([x[2] for x in loaded])),
-        xyz=torch.from_numpy(np.stack([x[3] for x in loaded])).permute(0, 3, 1, 2).half(),
-        ctx=f32([x[4] for x in loaded]),
-        K=f32([r.K for r in recs]),
-        R=f32([r.R for r in recs]),
-        t=f32([r.t for r in recs]),
-        bbox=f32([[b[0], b[1], b[2] + 1, b[3] + 1] for b in (r.bbox_visib for r in recs)]),
-        image_hw=torch.tensor([x[5] for x in loaded], dtype=torch.int64),
-        records=recs,
-    )
+    return PoseSet(dataset, records, image_hw, context, cache_mb, cache_items)

@@ -4,8 +4,11 @@ Recipe (the YOLOX recipe scaled to a CPU and a few thousand synthetic frames): A
 quadratic warm-up then cosine to 5 %, weight decay on conv weights only, EMA of the weights
 (the EMA is what is validated and exported), HSV + horizontal flip + random scale/translate
 augmentation, the L1 box term switched on for the last 15 % of the epochs (as YOLOX does for
-its last no-augmentation epochs). The epoch loop is :func:`~bopsurg.models.training.fit`;
-this module brings the data, the augmented training step and the validation.
+its last no-augmentation epochs), and the optional photometric augmentations of
+``recipe.augment`` (blur, noise, gamma, colour, JPEG; off by default) on the network input.
+Images are read from disk per batch (:mod:`bopsurg.models.data`). The epoch loop is
+:func:`~bopsurg.models.training.fit`; this module brings the data, the augmented training step
+and the validation.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import cast
 
@@ -22,9 +25,11 @@ import torch
 
 from bopsurg.errors import BopsurgError
 from bopsurg.models import training
-from bopsurg.models.data import DetectionSet, load_detection_set
+from bopsurg.models.data import BatchReader, DetectionBatch, DetectionSet, load_detection_set
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
 from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
+from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
+from bopsurg.models.run_config import LoaderConfig, resolved, write_config
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +49,7 @@ class DetectorRecipe:
     flip: float = 0.5
     min_visib: float = 0.1
     val_every: int = 5
+    augment: PhotometricConfig = field(default_factory=PhotometricConfig)
 
     def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
@@ -61,11 +67,11 @@ def validate(model: YoloxDetector, data: DetectionSet, device: torch.device) -> 
         return {}
     model.eval()
     ious, fps, negatives = [], 0, 0
-    for idx in torch.split(torch.arange(len(data)), 32):
-        images = data.images[idx].to(device).float() / 255
+    batch: DetectionBatch
+    for batch in BatchReader(data, data.collate).all(32):
+        images = batch.images.to(device).float() / 255
         dets = model.detect(images, conf_thr=0.001)
-        for i, det in zip(idx.tolist(), dets, strict=True):
-            gt = data.targets[i]
+        for gt, det in zip(batch.targets, dets, strict=True):
             if len(gt) == 0:
                 negatives += 1
                 fps += int(len(det) > 0 and float(det[0, 4]) >= 0.3)
@@ -97,6 +103,8 @@ def train_detector(
     progress: bool = True,
     max_images: int | None = None,
     obj_ids: Sequence[int] | None = None,
+    config: DetectorConfig | None = None,
+    loader: LoaderConfig | None = None,
 ) -> Path:
     """Train (or resume) a detector run in ``out``; returns the exported ``detector.pt``.
 
@@ -113,8 +121,12 @@ def train_detector(
         progress: Show progress bars.
         max_images: Use only the first N training images (smoke tests).
         obj_ids: Objects to detect, one class each; None = the dataset's first object.
+        config: The network's config (default: the preset's); its ``num_classes`` must be
+            the number of objects.
+        loader: How images are read (workers, cache); does not change the result.
     """
     recipe = recipe or DetectorRecipe()
+    loader = loader or LoaderConfig()
     dev = training.resolve_device(device)
     splits = training.open_splits(dataset, split, val_split)
     ds = splits.train
@@ -122,51 +134,60 @@ def train_detector(
     unknown = sorted(set(classes) - set(ds.obj_ids))
     if unknown:
         raise BopsurgError(f"--obj-ids: {unknown} not among the dataset's objects {ds.obj_ids}")
-    cfg = DetectorConfig.preset(preset, num_classes=len(classes))
+    preset_cfg = DetectorConfig.preset(preset, num_classes=len(classes))
+    cfg = preset_cfg if config is None else config
+    if cfg.num_classes != len(classes):
+        raise BopsurgError(
+            f"the detector config has num_classes {cfg.num_classes} but {len(classes)} "
+            f"object(s) are detected ({list(classes)}); set num_classes by --obj-ids"
+        )
     settings = training.RunSettings(
         "detector", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
         {"val_split": val_split, "max_images": max_images, "classes": list(classes)},
+        cfg.to_dict(),
     )  # fmt: skip
-    run, state = training.open_run(out, settings, restart=restart)
+    legacy = {"model": preset_cfg.to_dict(), "recipe": {"augment": asdict(PhotometricConfig())}}
+    run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
+    write_config(out, resolved("detector", preset, seed, cfg, recipe, loader))
     train = load_detection_set(
-        ds, splits.train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib, progress=progress
-    )
+        ds, splits.train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
+        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+    )  # fmt: skip
     if max_images is not None:
-        train = DetectionSet(
-            train.images[:max_images], train.targets[:max_images], train.keys[:max_images],
-            train.scales[:max_images], train.classes,
-        )  # fmt: skip
+        train = train.head(max_images)
     val = load_detection_set(
         splits.val, splits.val_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
-        progress=progress,
+        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
     )  # fmt: skip
     log.info("detector: %d train images, %d validation images", len(train), len(val))
     model = YoloxDetector(cfg).to(dev)
     meta = {"classes": list(classes)}
     export = training.Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
-    step = _step_fn(model, train, recipe, dev)
+    step = _step_fn(model, recipe, dev, seed)
     return training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
-        validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev), export=export,
-        device=dev, progress=progress,
+        validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev),
+        export=export, device=dev, progress=progress,
+        load=BatchReader(train, train.collate, loader.num_workers),
     )  # fmt: skip
 
 
 def _step_fn(
-    model: YoloxDetector, train: DetectionSet, recipe: DetectorRecipe, dev: torch.device
+    model: YoloxDetector, recipe: DetectorRecipe, dev: torch.device, seed: int
 ) -> training.StepFn:
-    """The detector's training step: augment a batch (HSV, flip, scale/translate), YOLOX
-    losses with the L1 box term from epoch ``l1_from`` on."""
+    """The detector's training step: augment a batch (HSV, flip, scale/translate, then the
+    per-sample photometric set), YOLOX losses with the L1 box term from epoch ``l1_from`` on."""
     l1_from = math.ceil(recipe.epochs * (1 - recipe.l1_fraction))
 
-    def step(idx: torch.Tensor, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
-        images = train.images[idx].to(dev).float() / 255
-        targets = [train.targets[i].to(dev) for i in idx.tolist()]
+    def step(batch: DetectionBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
+        images = batch.images.to(dev).float() / 255
+        targets = [t.to(dev) for t in batch.targets]
         images = hsv_jitter(images, gen)
         images, targets = random_flip(images, targets, gen, p=recipe.flip)
         images, targets = random_affine(
             images, targets, gen, scale=recipe.scale, translate=recipe.translate
         )
+        images = augment_batch(images, recipe.augment, batch_seeds(seed, epoch, batch.idx))
         return model.loss(model(images), targets, use_l1=epoch >= l1_from)
 
     return step

@@ -1,20 +1,21 @@
 """Train the GDR-Net-like pose head on the GT instances of a BOP split.
 
-Per batch, from the context crops of :class:`~bopsurg.models.data.PoseSet`: dynamic zoom-in
-(DZI) around the visible box, ROI image (bilinear, ``roi_in``), visible mask and object
-coordinates (nearest, ``roi_out``), the soft mask (covered fraction per cell), normalised
-coordinates and FPS surface regions computed on the fly, colour jitter, SITE and allocentric
-targets; the GDR-Net losses of :func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe (as
-GDR-Net's): AdamW, quadratic warm-up, flat then cosine from 72 % of the steps, EMA of the
-weights, run by the shared epoch loop :func:`~bopsurg.models.training.fit`.
-Validation decodes poses with test-time crops around the GT visible boxes and reports the
-median RE / TE / MSSD with bopsurg's own metrics.
+Per batch, from the context crops of :class:`~bopsurg.models.data.PoseSet` (read from disk per
+batch): dynamic zoom-in (DZI) around the visible box, ROI image (bilinear, ``roi_in``), visible
+mask and object coordinates (nearest, ``roi_out``), the soft mask (covered fraction per cell),
+normalised coordinates and FPS surface regions computed on the fly, colour jitter, the optional
+photometric augmentations of ``recipe.augment`` (blur, noise, gamma, colour, JPEG; off by
+default) on the ROI image, SITE and allocentric targets; the GDR-Net losses of
+:func:`~bopsurg.models.pose.losses.gdr_losses`. Recipe (as GDR-Net's): AdamW, quadratic
+warm-up, flat then cosine from 72 % of the steps, EMA of the weights, run by the shared epoch
+loop :func:`~bopsurg.models.training.fit`. Validation decodes poses with test-time crops around
+the GT visible boxes and reports the median RE / TE / MSSD with bopsurg's own metrics.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +26,9 @@ from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.geometry import rotation_about_axis
 from bopsurg.models import training
-from bopsurg.models.data import PoseSet, load_pose_set
+from bopsurg.models.data import BatchReader, PoseBatch, PoseSet, load_pose_set
 from bopsurg.models.detector.augment import hsv_jitter
+from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
 from bopsurg.models.pose.encodings import SiteRoi, ego_to_allo, rot6d_from_matrix, site_encode
@@ -34,6 +36,7 @@ from bopsurg.models.pose.losses import gdr_losses
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser, farthest_point_sampling, xyz_to_region
+from bopsurg.models.run_config import LoaderConfig, resolved, write_config
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +58,7 @@ class PoseRecipe:
     hsv: tuple[float, float, float] = (0.015, 0.5, 0.4)
     val_every: int = 5
     symmetric: bool = False
+    augment: PhotometricConfig = field(default_factory=PhotometricConfig)
 
     def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
@@ -125,39 +129,43 @@ def object_geometry(
 
 
 def roi_batch(
-    data: PoseSet,
-    idx: torch.Tensor,
+    data: PoseBatch,
     cfg: PoseConfig,
     geo: ObjectGeometry,
     device: torch.device,
     gen: torch.Generator | None,
     hsv: tuple[float, float, float] = (0.015, 0.5, 0.4),
+    augment: PhotometricConfig | None = None,
+    seeds: list[int] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-    """Network inputs and loss targets of the instances ``idx``; train-time jitter (DZI and
-    HSV colour, amplitudes ``hsv``) when ``gen`` is given, test-time crops when None."""
-    H, W = (int(v) for v in data.image_hw[idx[0]])
-    box = data.bbox[idx].to(device)
+    """Network inputs and loss targets of a batch of instances; train-time jitter (DZI and
+    HSV colour, amplitudes ``hsv``, then the photometric ``augment`` seeded per sample by
+    ``seeds``) when ``gen`` is given, test-time crops when None."""
+    H, W = (int(v) for v in data.image_hw[0])
+    box = data.bbox.to(device)
     box_xywh = torch.cat([box[:, :2] - 0.5, box[:, 2:]], dim=1)  # pixel-centre convention
     centre, side = dzi_boxes(box_xywh, gen, cfg, (H, W))
-    a, c0 = data.ctx[idx, 0].to(device), data.ctx[idx, 1:].to(device)
+    a, c0 = data.ctx[:, 0].to(device), data.ctx[:, 1:].to(device)
     C = data.rgb.shape[-1]
     c_centre, c_side = (centre - c0) * a[:, None] + C / 2, side * a  # in the context crop
-    rgb = data.rgb[idx].to(device).float() / 255
+    rgb = data.rgb.to(device).float() / 255
     roi_img = crop(rgb, c_centre, c_side, cfg.roi_in, "bilinear")
     if gen is not None:
         roi_img = hsv_jitter(roi_img, gen, *hsv)
-    mask_full = data.mask[idx, None].to(device).float()
+        if augment is not None and seeds is not None:
+            roi_img = augment_batch(roi_img, augment, seeds)
+    mask_full = data.mask[:, None].to(device).float()
     mask = crop(mask_full, c_centre, c_side, cfg.roi_out, "nearest")
     soft = None  # the covered fraction of each map cell (4×4 nearest samples), for BCE only
     if cfg.mask_loss == "bce":
         soft = crop(mask_full, c_centre, c_side, 4 * cfg.roi_out, "nearest")
         soft = torch.nn.functional.avg_pool2d(soft, 4)
-    xyz = crop(data.xyz[idx].to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
+    xyz = crop(data.xyz.to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
     fg = mask[:, 0] > 0.5
     xyz_hw = xyz.permute(0, 2, 3, 1)
     region = xyz_to_region(xyz_hw, fg, geo.fps.to(device))
     xyz_n = geo.normaliser.normalise(xyz_hw).permute(0, 3, 1, 2) * fg[:, None]
-    K, R, t = data.K[idx].to(device), data.R[idx].to(device), data.t[idx].to(device)
+    K, R, t = data.K.to(device), data.R.to(device), data.t.to(device)
     wh = box_xywh[:, 2:]
     coord2d = roi_coord_2d(centre, side, cfg.roi_out, (H, W))
     target = {
@@ -191,8 +199,8 @@ def validate(
         return {}
     model.eval()
     R_all, t_all = [], []
-    for idx in torch.split(torch.arange(len(data)), 64):
-        roi_img, coord2d, tg = roi_batch(data, idx, cfg, geo, device, None)
+    for batch in BatchReader(data, data.collate).all(64):
+        roi_img, coord2d, tg = roi_batch(batch, cfg, geo, device, None)
         out = model(roi_img, coord2d)
         R, t = pose_from_output(out, tg["K"], tg["centre"], tg["wh"], tg["side"], cfg)
         R_all.append(R.double().cpu())
@@ -225,6 +233,8 @@ def train_pose(
     restart: bool = False,
     progress: bool = True,
     max_instances: int | None = None,
+    config: PoseConfig | None = None,
+    loader: LoaderConfig | None = None,
 ) -> Path:
     """Train (or resume) a pose-head run in ``out``; returns the exported ``pose.pt``.
 
@@ -241,58 +251,72 @@ def train_pose(
         restart: Discard a previous run in ``out``.
         progress: Show progress bars.
         max_instances: Use only the first N training instances (smoke tests).
+        config: The network's config (default: the preset's). A symmetric object is set by
+            ``recipe.symmetric`` or ``config.symmetric`` (either sets both).
+        loader: How instances are read (workers, cache); does not change the result.
     """
+    from dataclasses import replace
+
     recipe = recipe or PoseRecipe()
+    loader = loader or LoaderConfig()
     dev = training.resolve_device(device)
-    cfg = PoseConfig.preset(preset)
-    if recipe.symmetric:
-        cfg = PoseConfig.from_dict({**cfg.to_dict(), "symmetric": True})
+    preset_cfg = PoseConfig.preset(preset)
+    cfg = preset_cfg if config is None else config
+    if recipe.symmetric or cfg.symmetric:
+        cfg, recipe = replace(cfg, symmetric=True), replace(recipe, symmetric=True)
     splits = training.open_splits(dataset, split, val_split)
     ds = splits.train
     obj_id = ds.obj_ids[0] if obj_id is None else obj_id
     settings = training.RunSettings(
         "pose", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
         {"val_split": val_split, "obj_id": obj_id, "max_instances": max_instances},
+        cfg.to_dict(),
     )  # fmt: skip
-    run, state = training.open_run(out, settings, restart=restart)
+    legacy_cfg = replace(preset_cfg, symmetric=cfg.symmetric)  # runs before config files
+    legacy = {"model": legacy_cfg.to_dict(), "recipe": {"augment": asdict(PhotometricConfig())}}
+    run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
+    write_config(out, resolved("pose", preset, seed, cfg, recipe, loader))
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
     train = load_pose_set(
-        ds, splits.train_ids, obj_id, min_visib=recipe.min_visib, progress=progress
-    )
+        ds, splits.train_ids, obj_id, min_visib=recipe.min_visib,
+        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+    )  # fmt: skip
     if max_instances is not None:
-        train = _head(train, max_instances)
-    val = load_pose_set(splits.val, splits.val_ids, obj_id, min_visib=0.3, progress=progress)
+        train = train.head(max_instances)
+    val = load_pose_set(
+        splits.val, splits.val_ids, obj_id, min_visib=0.3,
+        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+    )  # fmt: skip
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
 
     model = GdrPoseNet(cfg).to(dev)
     export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
-    step = _step_fn(model, train, cfg, geo, recipe, dev)
+    step = _step_fn(model, cfg, geo, recipe, dev, seed)
     return training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
-        validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export, device=dev,
-        progress=progress,
+        validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export,
+        device=dev, progress=progress,
+        load=BatchReader(train, train.collate, loader.num_workers),
     )  # fmt: skip
 
 
 def _step_fn(
     model: GdrPoseNet,
-    train: PoseSet,
     cfg: PoseConfig,
     geo: ObjectGeometry,
     recipe: PoseRecipe,
     dev: torch.device,
+    seed: int,
 ) -> training.StepFn:
     """The pose head's training step: jittered ROIs of a batch, the GDR-Net losses."""
     points = geo.points.to(dev)
     syms = None if geo.sym_rotations is None else geo.sym_rotations.to(dev)
 
-    def step(idx: torch.Tensor, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
-        roi_img, coord2d, target = roi_batch(train, idx, cfg, geo, dev, gen, recipe.hsv)
+    def step(batch: PoseBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
+        seeds = batch_seeds(seed, epoch, batch.idx)
+        roi_img, coord2d, target = roi_batch(
+            batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds
+        )
         return gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
 
     return step
-
-
-def _head(data: PoseSet, n: int) -> PoseSet:
-    fields = ("rgb", "mask", "xyz", "ctx", "K", "R", "t", "bbox", "image_hw")
-    return PoseSet(**{f: getattr(data, f)[:n] for f in fields}, records=data.records[:n])

@@ -14,8 +14,14 @@ A training run lives in one folder::
     OUT/log.jsonl         one JSON line per epoch: losses, validation, lr, seconds
     OUT/NAME.pt + .json   the exported model (EMA weights), rewritten after every epoch
 
-Randomness: every epoch draws from ``torch.Generator().manual_seed(seed * 1000 + epoch)``,
-so a run killed after epoch k and resumed gives the same weights as an uninterrupted one.
+Randomness: every epoch draws from ``torch.Generator().manual_seed(seed * 1000 + epoch)``
+(the shuffle first, then the batch augmentations in step order), and per-sample augmentations
+from seeds of (seed, epoch, sample index) (:func:`bopsurg.models.photometric.sample_seed`), so
+a run killed after epoch k and resumed gives the same weights as an uninterrupted one.
+
+Data: with a ``load`` function, :func:`fit` hands it the epoch's index batches up front and
+the step receives what it yields (batches read from disk, possibly by background workers
+that read ahead); without, the step receives the index tensors.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import logging
 import math
 import platform
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,14 +114,23 @@ class RunSettings:
     seed: int
     recipe: dict[str, Any]
     extra: dict[str, Any] = field(default_factory=dict)
+    model: dict[str, Any] = field(default_factory=dict)
 
 
 class RunFolder:
     """The files of one training run (see the module docs)."""
 
-    def __init__(self, out: str | Path, settings: RunSettings, *, restart: bool = False) -> None:
+    def __init__(
+        self,
+        out: str | Path,
+        settings: RunSettings,
+        *,
+        restart: bool = False,
+        legacy: dict[str, Any] | None = None,
+    ) -> None:
         self.out = Path(out)
         self.settings = settings
+        self.legacy = legacy or {}
         self.out.mkdir(parents=True, exist_ok=True)
         self.state_path = self.out / "train_state.pt"
         self.settings_path = self.out / "train_state.json"
@@ -135,10 +150,15 @@ class RunFolder:
         if self.settings_path.is_file():
             saved = _resumable(json.loads(self.settings_path.read_text(encoding="utf-8")))
             mine = _resumable(json.loads(json.dumps(asdict(self.settings))))
+            legacy = _resumable(json.loads(json.dumps(self.legacy)))
+            # a setting added after the run was written is taken at what the run used then
+            saved = {**{k: v for k, v in legacy.items() if k not in saved}, **saved}
             diff = sorted(k for k in {*mine, *saved} if saved.get(k) != mine.get(k))
             if diff:
+                changes = "; ".join(f"{k}: {saved.get(k)!r} -> {mine.get(k)!r}" for k in diff[:3])
                 raise BopsurgError(
                     f"{self.out}: holds a run with other settings ({', '.join(diff)}); "
+                    f"{changes}{' ...' if len(diff) > 3 else ''}; "
                     "use another --out or --restart"
                 )
         try:
@@ -211,15 +231,26 @@ def open_splits(dataset: str | Path, split: str, val_split: str | None) -> Split
 
 
 def open_run(
-    out: str | Path, settings: RunSettings, *, restart: bool
+    out: str | Path,
+    settings: RunSettings,
+    *,
+    restart: bool,
+    legacy: dict[str, Any] | None = None,
 ) -> tuple[RunFolder, dict[str, Any] | None]:
     """The run folder ``out`` and its saved state (None: a fresh run), then torch's global
     generator seeded with ``settings.seed`` for the network's initialisation.
 
+    Args:
+        out: The run folder.
+        settings: This run's settings; a saved run with other settings is refused.
+        restart: Discard a previous run in ``out``.
+        legacy: Settings (nested like :class:`RunSettings`' dict) that runs written by an
+            older bopsurg lack, with the value they implicitly had (so such runs resume).
+
     Raises:
         BopsurgError: ``out`` holds a run with other settings.
     """
-    run = RunFolder(out, settings, restart=restart)
+    run = RunFolder(out, settings, restart=restart, legacy=legacy)
     state = run.load_state()
     torch.manual_seed(settings.seed)
     return run, state
@@ -278,9 +309,12 @@ class Schedule:
     val_every: int
 
 
-#: One training step's losses: ``(batch indices, epoch generator, epoch) → {name: scalar}``
-#: with a ``"total"`` that is back-propagated; every entry is averaged into the log.
-StepFn = Callable[[torch.Tensor, torch.Generator, int], dict[str, torch.Tensor]]
+#: One training step's losses: ``(batch, epoch generator, epoch) → {name: scalar}`` with a
+#: ``"total"`` that is back-propagated; every entry is averaged into the log. The batch is the
+#: index tensor, or what :data:`LoadFn` yields for it.
+StepFn = Callable[[Any, torch.Generator, int], dict[str, torch.Tensor]]
+#: Reads an epoch's index batches: ``[indices, ...] → the batches, in that order``.
+LoadFn = Callable[[Sequence[torch.Tensor]], Iterable[Any]]
 #: Validation of the EMA network: ``network → {name: value}`` (logged with a ``val_`` prefix).
 ValidateFn = Callable[[nn.Module], dict[str, float]]
 
@@ -325,6 +359,7 @@ def fit(
     export: Export,
     device: torch.device,
     progress: bool = True,
+    load: LoadFn | None = None,
 ) -> Path:
     """Train ``model`` for the remaining epochs of ``schedule``; returns ``export.path``.
 
@@ -344,6 +379,7 @@ def fit(
         export: Where and how the exported checkpoint is written.
         device: Where the model lives (recorded in the provenance).
         progress: Show a progress bar per epoch.
+        load: Reads the epoch's index batches (from disk); ``step`` then gets its batches.
     """
     steps_per_epoch = max(1, n_train // schedule.batch_size)
     total = schedule.epochs * steps_per_epoch
@@ -353,8 +389,10 @@ def fit(
         gen = epoch_generator(run.settings.seed, epoch)
         model.train()
         sums: dict[str, float] = {}
+        # the shuffle is drawn first, so a loader may read ahead of the augmentation draws
+        order = list(batches(n_train, schedule.batch_size, gen))
         bar = tqdm(
-            batches(n_train, schedule.batch_size, gen), total=steps_per_epoch,
+            order if load is None else load(order), total=steps_per_epoch,
             desc=f"{export.kind} {epoch + 1}/{schedule.epochs}", disable=not progress, leave=False,
         )  # fmt: skip
         for k, idx in enumerate(bar):

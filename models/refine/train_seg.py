@@ -3,11 +3,12 @@
     python -m bopsurg.models.refine.train_seg DATASET --out runs/seg --steps 1500 --seed 0
 
 Per GT needle instance (visib_fract >= 0.1) a native-resolution context around its visible box
-(2.5 × the box's longer side, zero-padded, no resampling) is kept in memory with its visible
-mask. Each step draws a batch, jitters the crop as the pose head does (Dynamic Zoom-In: side
-× U(0.75, 1.25), centre ± 0.25 box), cuts the RGB and the mask with the same bilinear
-``grid_sample`` the estimator uses at test time, adds colour jitter and flips, and minimises
-BCE + Dice on the mask (the bilinear crop makes it the covered fraction of each grid pixel).
+(2.5 × the box's longer side, zero-padded, no resampling) is cut with its visible mask from the
+files on disk when a batch needs it (only the index of instances is kept in memory). Each step
+draws a batch, jitters the crop as the pose head does (Dynamic Zoom-In: side × U(0.75, 1.25),
+centre ± 0.25 box), cuts the RGB and the mask with the same bilinear ``grid_sample`` the
+estimator uses at test time, adds colour jitter and flips, and minimises BCE + Dice on the mask
+(the bilinear crop makes it the covered fraction of each grid pixel).
 AdamW with warm-up and cosine decay; deterministic for a seed. Writes OUT/needle_seg.pt
 (float16) and its JSON (config, the needle arc from models_info, recipe, seed, time).
 
@@ -21,7 +22,9 @@ import logging
 import math
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 import torch
@@ -31,7 +34,7 @@ from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.errors import BopsurgError
 from bopsurg.models.checkpoint import save_checkpoint
-from bopsurg.models.data import CONTEXT_RATIO, list_instances, split_scenes
+from bopsurg.models.data import CONTEXT_RATIO, InstanceRecord, list_instances, split_scenes
 from bopsurg.models.pose.roi import crop, dzi_boxes
 from bopsurg.models.refine.fit import ArcModel
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig, seg_loss
@@ -39,15 +42,34 @@ from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig, seg_loss
 log = logging.getLogger(__name__)
 
 
-def load_contexts(
-    dataset: BopDataset, scene_ids: list[int], obj_id: int, progress: bool
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per instance: (RGB (s, s, 3) uint8, mask (s, s) uint8, box (4,) in context px)."""
-    items = []
-    per_image = list_instances(dataset, scene_ids, obj_ids=[obj_id], min_visib=0.1)
-    recs = [r for rs in per_image.values() for r in rs]
-    for r in tqdm(recs, desc="contexts", disable=not progress):
-        scene = dataset.scene(r.scene_id)
+#: One context: RGB (s, s, 3) uint8, mask (s, s) uint8, visible box (4,) in context px.
+Context = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+class ContextSet(Sequence[Context]):
+    """The contexts of GT instances, cut from their images on demand (nothing decoded is
+    kept, so memory does not grow with the dataset).
+
+    Args:
+        dataset: The split.
+        records: The instances.
+    """
+
+    def __init__(self, dataset: BopDataset, records: list[InstanceRecord]) -> None:
+        self.dataset, self.records = dataset, records
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    @overload
+    def __getitem__(self, i: int) -> Context: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[Context]: ...
+    def __getitem__(self, i: int | slice) -> Context | list[Context]:
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        r = self.records[i]
+        scene = self.dataset.scene(r.scene_id)
         rgb = load_rgb(scene.rgb_path(r.im_id))
         mask = load_mask(scene.mask_visib_path(r.im_id, r.gt_id)).astype(np.uint8)
         x, y, w, h = r.bbox_visib
@@ -61,12 +83,22 @@ def load_contexts(
         if ex > sx and ey > sy:
             ctx_rgb[sy - y0 : ey - y0, sx - x0 : ex - x0] = rgb[sy:ey, sx:ex]
             ctx_mask[sy - y0 : ey - y0, sx - x0 : ex - x0] = mask[sy:ey, sx:ex]
-        items.append((ctx_rgb, ctx_mask, np.array([x - x0, y - y0, w, h], np.float32)))
-    return items
+        return ctx_rgb, ctx_mask, np.array([x - x0, y - y0, w, h], np.float32)
+
+
+def load_contexts(
+    dataset: BopDataset, scene_ids: list[int], obj_id: int, progress: bool
+) -> ContextSet:
+    """The instances of ``obj_id`` (visib_fract >= 0.1) of ``scene_ids``; each item is
+    (RGB (s, s, 3) uint8, mask (s, s) uint8, box (4,) in context px), read when indexed.
+    ``progress`` is accepted for compatibility: nothing is decoded here."""
+    del progress
+    per_image = list_instances(dataset, scene_ids, obj_ids=[obj_id], min_visib=0.1)
+    return ContextSet(dataset, [r for rs in per_image.values() for r in rs])
 
 
 def make_batch(
-    items: list, idx: torch.Tensor, cfg: SegConfig, gen: torch.Generator
+    items: Sequence[Context], idx: torch.Tensor, cfg: SegConfig, gen: torch.Generator
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Jittered crops (B, 3, S, S) in [0, 1] and soft masks (B, 1, S, S) of items ``idx``."""
     xs, ys = [], []

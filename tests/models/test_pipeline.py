@@ -108,6 +108,45 @@ def test_a_resumed_run_ends_with_the_same_weights(dataset, trained, tmp_path):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
 
 
+def test_loader_workers_do_not_change_the_weights(dataset, trained, tmp_path):
+    _, pose = trained
+    out = tmp_path / "pose_w1"
+    assert _train("pose", dataset, out, 2, "--workers", "1") == 0
+    a, b = load_tensors(pose), load_tensors(out / "pose.pt")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+
+
+def test_the_sample_cache_does_not_change_the_weights(dataset, trained, tmp_path):
+    """``trained`` read through the default cache (the set fits: decoded once); without a
+    cache (every sample decoded every epoch, the streaming loader) the weights are the same."""
+    _, pose = trained
+    conf = tmp_path / "nocache.yaml"
+    conf.write_text("loader: {cache_mb: 0}\n", encoding="utf-8")
+    out = tmp_path / "pose_nocache"
+    assert _train("pose", dataset, out, 2, "--config", str(conf)) == 0
+    a, b = load_tensors(pose), load_tensors(out / "pose.pt")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+
+
+def test_a_resumed_run_with_photometric_augmentations_ends_with_the_same_weights(
+    dataset, trained, tmp_path
+):
+    _, pose = trained
+    conf = tmp_path / "domain.yaml"
+    conf.write_text("augment: {preset: domain, blur_p: 1.0, jpeg_p: 1.0}\n", encoding="utf-8")
+    full, part = tmp_path / "full", tmp_path / "part"
+    assert _train("pose", dataset, full, 2, "--config", str(conf)) == 0
+    assert _train("pose", dataset, part, 1, "--config", str(conf), "--workers", "1") == 0
+    assert _train("pose", dataset, part, 2, "--config", str(conf)) == 0  # resumes
+    a, b = load_tensors(full / "pose.pt"), load_tensors(part / "pose.pt")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+    plain = load_tensors(pose)  # the augmentations did change the training
+    assert any(not torch.equal(plain[k], a[k]) for k in a)
+
+
 def test_resume_with_other_settings_is_refused(dataset, trained, capsys):
     det, _ = trained
     code = _train("detector", dataset, det.parent, 3, "--lr", "0.5")

@@ -1,0 +1,227 @@
+"""A training run's full configuration: read from a YAML/JSON file, resolved, written back.
+
+One file configures one run of ``bopsurg train detector|pose --config FILE``::
+
+    preset: cpu          # the model preset the model section starts from
+    seed: 0
+    pose:                # PoseConfig fields (a detector run: 'detector:' with DetectorConfig's)
+      z_unit_mm: 100
+      roi_in: 160
+    recipe:              # PoseRecipe / DetectorRecipe fields: epochs, lr, batch_size, hsv ...
+      epochs: 40
+      lr: 1.0e-3
+    augment:             # photometric augmentations (models/photometric.py)
+      preset: domain     # start from a named set ('off' is the default), then override
+      jpeg_p: 0.5
+    loader:              # how samples are read; does not change the result
+      num_workers: 1
+      cache_mb: 4096     # decoded samples kept in memory, MiB per set and process (0: none)
+
+Every section and key is optional (defaults: the preset's). Unknown keys are errors naming the
+file and the key. Command-line flags override the file. The resolved configuration (every
+field, explicit) is written into the run folder as ``config.yaml``: it is a valid ``--config``
+file that reproduces the run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+from bopsurg.errors import BopsurgError
+from bopsurg.models.photometric import PhotometricConfig
+
+SECTIONS = ("preset", "seed", "detector", "pose", "recipe", "augment", "loader")
+D = TypeVar("D")
+
+
+@dataclass(frozen=True)
+class LoaderConfig:
+    """How training samples are read (not part of the result: a resume may change it).
+
+    Each set (training, validation) caches its decoded samples, least recently used evicted
+    first, within ``cache_mb`` in every process that reads it: the training process, and
+    each of the ``num_workers`` processes for the training set (so up to
+    ``(num_workers + 1) * cache_mb`` in all). A sample costs about 0.25 MB (detector,
+    320x256 input) or 0.65 MB (pose, 256-px context crop), so the default holds about 6,000
+    pose instances: a set that fits is decoded once, a larger one streams from disk.
+
+    Attributes:
+        num_workers: Background loader processes that read batches ahead (0: read in the
+            training process).
+        cache_mb: The cache budget per set and per process, MiB (2**20 bytes) of decoded
+            tensors (0: no cache, every sample is decoded every epoch).
+        cache_items: At most this many cached samples per set and process as well (None:
+            no count limit; 0: no cache). Files written before ``cache_mb`` existed hold
+            ``cache_items: 0``, and keep meaning no cache.
+    """
+
+    num_workers: int = 0
+    cache_mb: int = 4096
+    cache_items: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.num_workers < 0 or self.cache_mb < 0:
+            raise ValueError("loader.num_workers and loader.cache_mb must be >= 0")
+        items = self.cache_items
+        if items is not None and (isinstance(items, bool) or not isinstance(items, int)):
+            raise ValueError(f"loader.cache_items must be null or an integer, got {items!r}")
+        if items is not None and items < 0:
+            raise ValueError("loader.cache_items must be >= 0 (or null: no count limit)")
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """The mapping in a ``.yaml``/``.yml`` (``yaml.safe_load``) or ``.json`` file.
+
+    Raises:
+        BopsurgError: Unreadable file, bad syntax, not a mapping or an unknown section.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as err:
+        raise BopsurgError(f"--config {p}: cannot read ({err.strerror})") from err
+    try:
+        data = json.loads(text) if p.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (yaml.YAMLError, json.JSONDecodeError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise BopsurgError(f"--config {p}: not valid YAML/JSON ({first})") from err
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise BopsurgError(
+            f"--config {p}: expected a mapping of sections, got {type(data).__name__}"
+        )
+    for key in data:
+        if key not in SECTIONS:
+            raise BopsurgError(
+                f"--config {p}: unknown key {key!r} (sections: {', '.join(SECTIONS)})"
+            )
+    return data
+
+
+def _coerce(value: Any, hint: Any, where: str) -> Any:
+    """``value`` as the type ``hint`` of a dataclass field (YAML lists become tuples,
+    ``1e-3``, which YAML reads as a string, a float)."""
+    origin = typing.get_origin(hint)
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, list | tuple):
+            raise BopsurgError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], where) for v in value)
+        if len(value) != len(args):
+            raise BopsurgError(f"{where}: expected {len(args)} values, got {value!r}")
+        return tuple(_coerce(v, a, where) for v, a in zip(value, args, strict=True))
+    if origin in (typing.Union, types.UnionType):
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise BopsurgError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int | float | str):
+            raise BopsurgError(f"{where}: expected an integer, got {value!r}")
+        try:
+            as_float = float(value)
+        except ValueError:
+            raise BopsurgError(f"{where}: expected an integer, got {value!r}") from None
+        if as_float != int(as_float):
+            raise BopsurgError(f"{where}: expected an integer, got {value!r}")
+        return int(as_float)
+    if hint is float:
+        if isinstance(value, bool):
+            raise BopsurgError(f"{where}: expected a number, got {value!r}")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise BopsurgError(f"{where}: expected a number, got {value!r}") from None
+    if hint is str:
+        return str(value)
+    return value
+
+
+def build(cls: type[D], base: dict[str, Any], values: Any, where: str) -> D:
+    """``cls(**{**base, **values})`` with each value checked and coerced to its field's type.
+
+    Raises:
+        BopsurgError: ``values`` is not a mapping, names an unknown field, holds a value of
+            the wrong type, or the dataclass rejects it (its ``ValueError``), all one line
+            starting with ``where``.
+    """
+    if values is None:
+        values = {}
+    if not isinstance(values, dict):
+        raise BopsurgError(f"{where}: expected a mapping of fields, got {values!r}")
+    assert dataclasses.is_dataclass(cls)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name for f in dataclasses.fields(cls)}
+    for key in values:
+        if key not in fields:
+            raise BopsurgError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(fields))})")
+    merged = {**base, **{k: _coerce(v, hints[k], f"{where}.{k}") for k, v in values.items()}}
+    try:
+        return cls(**merged)
+    except (TypeError, ValueError) as err:
+        raise BopsurgError(f"{where}: {err}") from err
+
+
+def augment_config(values: Any, where: str) -> PhotometricConfig:
+    """The ``augment`` section: an optional ``preset`` then field overrides."""
+    if values is None:
+        return PhotometricConfig()
+    if not isinstance(values, dict):
+        raise BopsurgError(f"{where}: expected a mapping of fields, got {values!r}")
+    values = dict(values)
+    try:
+        base = PhotometricConfig.preset_values(str(values.pop("preset", "off")))
+    except ValueError as err:
+        raise BopsurgError(f"{where}.preset: {err}") from err
+    return build(PhotometricConfig, base, values, where)
+
+
+def to_plain(obj: Any) -> Any:
+    """A dataclass or nested value as plain YAML/JSON data (tuples become lists)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {k: to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_plain(v) for v in obj]
+    return obj
+
+
+def dump_yaml(resolved: dict[str, Any]) -> str:
+    """The resolved configuration as YAML text (sections in :data:`SECTIONS` order)."""
+    return str(yaml.safe_dump(to_plain(resolved), sort_keys=False, default_flow_style=None))
+
+
+def resolved(
+    kind: str, preset: str, seed: int, model: Any, recipe: Any, loader: LoaderConfig
+) -> dict[str, Any]:
+    """The full configuration of a run as a ``--config`` mapping (every field explicit):
+    ``recipe.augment`` is written as the ``augment`` section."""
+    rec = to_plain(recipe)
+    augment = rec.pop("augment", None)
+    out: dict[str, Any] = {"preset": preset, "seed": seed, kind: to_plain(model), "recipe": rec}
+    if augment is not None:
+        out["augment"] = augment
+    out["loader"] = to_plain(loader)
+    return out
+
+
+def write_config(out: str | Path, config: dict[str, Any]) -> Path:
+    """Atomically write ``config`` as ``OUT/config.yaml``; returns its path."""
+    from bopsurg.atomic import write_text
+
+    path = Path(out) / "config.yaml"
+    header = "# the resolved configuration of this run (bopsurg train ... --config this file)\n"
+    write_text(path, header + dump_yaml(config))
+    return path

@@ -1,0 +1,167 @@
+"""``bopsurg train --config FILE``: every field of the model, recipe, augment and loader
+settings from a YAML/JSON file, flags on top, the resolved file written into the run folder,
+and a resume with another configuration refused."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+torch = pytest.importorskip("torch")
+
+from bopsurg.cli.main import main  # noqa: E402
+from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
+from bopsurg.models.checkpoint import load_tensors  # noqa: E402
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cfg")
+    return write_example_dataset(root, ExampleSpec(seed=1, scenes=2, images_per_scene=4)).root
+
+
+def _dump(capsys, *args: str) -> dict:
+    capsys.readouterr()
+    assert main(["train", *args, "--dump-config"]) == 0
+    return yaml.safe_load(capsys.readouterr().out)
+
+
+def _write(path, text: str):
+    path.write_text(text, encoding="utf-8")
+    return str(path)
+
+
+def _error(capsys, args: list[str]) -> str:
+    capsys.readouterr()
+    assert main(["train", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err, err
+    return err
+
+
+def test_dump_config_gives_every_field_and_round_trips(tmp_path, capsys):
+    conf = _dump(capsys, "pose", "--preset", "test")
+    assert set(conf) == {"preset", "seed", "pose", "recipe", "augment", "loader"}
+    assert conf["pose"]["roi_in"] == 64
+    assert conf["pose"]["w_region"] == 1.0
+    assert conf["recipe"]["epochs"] == 40
+    assert conf["augment"]["jpeg_p"] == 0.0
+    assert conf["loader"] == {"num_workers": 0, "cache_mb": 4096, "cache_items": None}
+    again = _dump(capsys, "pose", "--config", _write(tmp_path / "c.yaml", yaml.safe_dump(conf)))
+    assert again == conf
+    det = _dump(capsys, "detector", "--preset", "s")
+    assert det["detector"]["input_hw"] == [480, 640]
+    assert "pose" not in det
+
+
+def test_the_file_sets_fields_and_flags_override_it(tmp_path, capsys):
+    path = _write(
+        tmp_path / "pose.yaml",
+        "preset: test\nseed: 3\npose: {z_unit_mm: 100, roi_in: 160}\n"
+        "recipe: {epochs: 9, lr: 1e-3, hsv: [0.0, 0.1, 0.2]}\n"
+        "augment: {preset: domain, blur_sigma: [1, 2]}\nloader: {num_workers: 1}\n",
+    )
+    conf = _dump(capsys, "pose", "--config", path)
+    assert conf["preset"] == "test"
+    assert conf["seed"] == 3
+    assert conf["pose"]["z_unit_mm"] == 100.0
+    assert conf["pose"]["roi_in"] == 160
+    assert conf["pose"]["num_regions"] == 8  # the rest from the test preset
+    assert conf["recipe"]["lr"] == 0.001
+    assert conf["recipe"]["hsv"] == [0.0, 0.1, 0.2]
+    assert conf["augment"]["blur_p"] == 0.3
+    assert conf["augment"]["blur_sigma"] == [1.0, 2.0]
+    assert conf["loader"]["num_workers"] == 1
+    old = _write(tmp_path / "old.yaml", "loader: {num_workers: 0, cache_items: 0}\n")
+    assert _dump(capsys, "pose", "--config", old)["loader"]["cache_items"] == 0  # still no cache
+    flags = ["--epochs", "2", "--lr", "0.5", "--seed", "0", "--workers", "0", "--symmetric"]
+    conf = _dump(capsys, "pose", "--config", path, *flags)
+    assert conf["recipe"]["epochs"] == 2
+    assert conf["recipe"]["lr"] == 0.5
+    assert conf["seed"] == 0
+    assert conf["loader"]["num_workers"] == 0
+    assert conf["recipe"]["symmetric"] is True
+    assert conf["pose"]["symmetric"] is True
+    jpath = _write(tmp_path / "det.json", json.dumps({"detector": {"width": 0.5}}))
+    assert _dump(capsys, "detector", "--config", jpath)["detector"]["width"] == 0.5
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("pose: {roi_inn: 160}\n", "pose: unknown key 'roi_inn'"),
+        ("augmnt: {blur_p: 1}\n", "unknown key 'augmnt'"),
+        ("augment: {blur_q: 1}\n", "augment: unknown key 'blur_q'"),
+        ("recipe: {lr: fast}\n", "recipe.lr: expected a number"),
+        ("recipe: {epochs: 2.5}\n", "recipe.epochs: expected an integer"),
+        ("pose: {roi_in: 100}\n", "roi_in must be a positive multiple of 32"),
+        ("detector: {width: 1}\n", "section 'detector' configures a detector"),
+        ("recipe: {augment: {blur_p: 1}}\n", "use the top-level 'augment' section"),
+        ("augment: {preset: heavy}\n", "unknown augment preset"),
+        ("[1, 2]\n", "expected a mapping"),
+        ("pose: {roi_in: [\n", "not valid YAML"),
+        ("loader: {cache_mb: -1}\n", "loader.num_workers and loader.cache_mb must be >= 0"),
+        ("loader: {cache_mb: 1.5}\n", "loader.cache_mb: expected an integer"),
+        ("loader: {cache_items: many}\n", "loader.cache_items must be null or an integer"),
+        ("loader: {cache_items: -2}\n", "loader.cache_items must be >= 0"),
+    ],
+)
+def test_bad_files_are_one_line_errors_naming_file_and_key(tmp_path, capsys, text, needle):
+    path = _write(tmp_path / "bad.yaml", text)
+    err = _error(capsys, ["pose", "--config", path, "--dump-config"])
+    assert err.startswith("bopsurg: error: --config ")
+    assert str(path) in err
+    assert needle in err
+
+
+def test_a_configured_run_writes_its_config_and_refuses_another_on_resume(
+    dataset, tmp_path, capsys
+):
+    out = tmp_path / "run"
+    path = _write(
+        tmp_path / "det.yaml",
+        "preset: test\ndetector: {width: 0.125, depth: 0.25}\n"
+        "recipe: {epochs: 1, batch_size: 2, val_every: 1}\naugment: {preset: domain}\n",
+    )
+    common = ["detector", str(dataset), "--split", "test", "--out", str(out), "--no-progress"]
+    assert main(["train", *common, "--config", path]) == 0
+    written = yaml.safe_load((out / "config.yaml").read_text())
+    assert written["detector"]["depth"] == 0.25
+    assert written["augment"]["gamma_p"] == 0.5
+    info = json.loads((out / "detector.json").read_text())
+    assert info["config"]["depth"] == 0.25
+    assert info["meta"]["settings"]["recipe"]["augment"]["jpeg_p"] == 0.3
+    # the written file reproduces the run: a resume from it (with more epochs) is accepted
+    resumed = ["train", *common, "--config", str(out / "config.yaml"), "--epochs", "2"]
+    assert main(resumed) == 0
+    assert [json.loads(x)["epoch"] for x in (out / "log.jsonl").read_text().splitlines()] == [0, 1]
+    changed = _write(tmp_path / "other.yaml", (out / "config.yaml").read_text().replace(
+        "depth: 0.25", "depth: 0.5"))  # fmt: skip
+    err = _error(capsys, [*common, "--config", changed, "--epochs", "3"])
+    assert "other settings (model.depth)" in err
+    assert "0.25 -> 0.5" in err
+    err = _error(capsys, [*common, "--config", str(out / "config.yaml"), "--lr", "0.1"])
+    assert "recipe.lr" in err
+
+
+def test_a_run_of_an_older_bopsurg_resumes(dataset, tmp_path):
+    """train_state.json written before model configs and augmentations were recorded."""
+    out = tmp_path / "old"
+    common = ["train", "detector", str(dataset), "--split", "test", "--out", str(out)]
+    args = [*common, "--preset", "test", "--batch-size", "2", "--no-progress"]
+    assert main([*args, "--epochs", "1"]) == 0
+    settings = json.loads((out / "train_state.json").read_text())
+    del settings["model"], settings["recipe"]["augment"]
+    (out / "train_state.json").write_text(json.dumps(settings))
+    assert main([*args, "--epochs", "2"]) == 0
+    assert load_tensors(out / "detector.pt")  # resumed, not refused
