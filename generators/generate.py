@@ -315,8 +315,12 @@ def generate_dataset(
     finally:
         bar.close()
     scene_ids = [u.scene_id for u in units]
-    _write_targets(out, split, scene_ids)
-    write_detection_annotations(BopDataset(out, split))  # scene_gt_coco, BOP24 targets
+    # the root's targets files name the images to evaluate: a training split must not
+    # replace those of a test split generated before it into the same dataset
+    test_split = not split.startswith("train")
+    if test_split:
+        _write_targets(out, split, scene_ids)
+    write_detection_annotations(BopDataset(out, split), targets=test_split)  # + scene_gt_coco
     return GenerateReport(
         scenes=len(results),
         scenes_skipped=sum(r.skipped for r in results),

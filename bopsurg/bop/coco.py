@@ -148,11 +148,16 @@ def scene_gt_coco(
 
 
 def write_detection_annotations(
-    dataset: BopDataset, *, keep_targets: bool = False, progress: bool = False
+    dataset: BopDataset,
+    *,
+    keep_targets: bool = False,
+    targets: bool = True,
+    progress: bool = False,
 ) -> int:
     """Write the files of the detection tasks for a split: ``scene_gt_coco.json`` in every
     scene that has masks, and ``test_targets_bop24.json`` (every image with GT) at the root
-    (an existing one is kept with ``keep_targets``).
+    (an existing one is kept with ``keep_targets``; none is written without ``targets``, as
+    for a training split: the root's targets file belongs to the test split).
 
     Returns:
         The number of scenes given a ``scene_gt_coco.json``.
@@ -167,7 +172,7 @@ def write_detection_annotations(
         save_json(scene.scene_dir / SCENE_GT_COCO, content)
         written += 1
     path = dataset.root / TARGETS_BOP24_FILENAME
-    if not (keep_targets and path.exists()):
+    if targets and not (keep_targets and path.exists()):
         targets = enumerate_image_targets({s.scene_id: s.gt for s in dataset.iter_scenes()})
         save_image_targets(path, targets)
     return written

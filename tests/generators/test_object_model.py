@@ -247,3 +247,17 @@ def test_pybullet_renders_the_users_mesh_at_its_pose(files):
     assert _iou(depth > 0, sil) > 0.9
     ref = rasterize_depth(model.model, T_cam_obj, camera) > 0
     assert _iou(depth > 0, ref) > 0.9
+
+
+def test_a_training_split_keeps_the_test_splits_targets(registered, files, tmp_path):
+    # generating test and then train into one dataset: evaluating the test split needs the
+    # targets of its own images (a train split once overwrote them: "no scene 33")
+    out = tmp_path / "ds"
+    assert _generate(files / "needle.bag", out) == 0
+    before = {
+        n: (out / n).read_bytes() for n in ("test_targets_bop19.json", "test_targets_bop24.json")
+    }
+    assert _generate(files / "needle.bag", out, "--split", "train", "--replays", "2") == 0
+    assert (out / "train" / "000002").is_dir()  # a scene the test split does not have
+    for name, content in before.items():
+        assert (out / name).read_bytes() == content
