@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -136,6 +137,16 @@ class Evidence:
     def size(self) -> int:
         """Number of foreground pixels in the reverse term."""
         return int(self.points.shape[0])
+
+    @cached_property
+    def distance_stack(self) -> F64:
+        """(3, S, S): ``dist`` and its x, y gradient, sampled together (one gather, not 3)."""
+        return np.concatenate([self.dist[None], self.grad])
+
+    @cached_property
+    def outline_stack(self) -> F64:
+        """(3, S, S): ``sdf`` and its x, y gradient."""
+        return np.concatenate([self.sdf[None], self.sdf_grad])
 
 
 @dataclass(frozen=True)
@@ -306,14 +317,16 @@ class _Problem:
         rho_c = (1 - tk[..., 0]) * rho[bj, k] + tk[..., 0] * rho[bj, k + 1]
         d_rev = np.maximum(d_line - rho_c, 0.0)  # zero inside the tube
         grid_xy = (uv - ev.origin) / ev.step
-        d_fwd = _bilinear(ev.dist, grid_xy)
+        fwd = _bilinear(ev.distance_stack, grid_xy)  # (3, B, M): distance, d/dx, d/dy
+        d_fwd = fwd[0]
         # the tube's two sides: ±rho along the projected centre line's normal
         tangent = np.gradient(uv, axis=1)  # (B, M, 2), px per sample
         t_len = np.linalg.norm(tangent, axis=-1, keepdims=True)
         normal = np.stack([-tangent[..., 1], tangent[..., 0]], -1) / np.maximum(t_len, 1e-9)
         sides = np.concatenate([uv + rho[..., None] * normal, uv - rho[..., None] * normal], 1)
         side_xy = (sides - ev.origin) / ev.step
-        d_side = _bilinear(ev.sdf, side_xy)  # (B, 2M)
+        side = _bilinear(ev.outline_stack, side_xy)  # (3, B, 2M): signed distance, d/dx, d/dy
+        d_side = side[0]
         # a side is defined where the centre line runs across the view (not where it turns
         # back towards the camera) and the wire is wider than a pixel
         use = (t_len[..., 0] > 0.25) & (rho > 0.5) & s.tube
@@ -342,10 +355,10 @@ class _Problem:
         J_rev = -np.einsum("bnk,bnkp->bnp", u_hat, Jc) - drho_c
         J_rev *= (d_rev > 0)[..., None]
         # forward: r = dist(uv); dr/dp = ∇dist · d(uv)/dp
-        g = np.stack([_bilinear(ev.grad[0], grid_xy), _bilinear(ev.grad[1], grid_xy)], -1)
+        g = np.moveaxis(fwd[1:], 0, -1)
         J_fwd = np.einsum("bmk,bmkp->bmp", g, Jp)
         # sides: r = sdf(uv ± rho·n); the normal's own turn with the pose is left out
-        gs = np.stack([_bilinear(ev.sdf_grad[0], side_xy), _bilinear(ev.sdf_grad[1], side_xy)], -1)
+        gs = np.moveaxis(side[1:], 0, -1)
         Js = np.concatenate(
             [
                 Jp + normal[..., None] * drho[..., None, :],
@@ -412,12 +425,16 @@ def _levenberg_marquardt(
         x_new = x - np.linalg.solve(A, grad[..., None])[..., 0]
         c_new, r_new, w_new, J_new = total(x_new)
         better = np.isfinite(c_new) & (c_new < cost)
+        cost_before = cost
         x = np.where(better[:, None], x_new, x)
         cost = np.where(better, c_new, cost)
         r = np.where(better[:, None], r_new, r)
         w = np.where(better[:, None], w_new, w)
         J = np.where(better[:, None, None], J_new, J)
+        converged = np.where(better, cost_before - cost < 1e-6 * cost_before, lam >= 1.0)
         lam = np.where(better, lam * 0.3, lam * 10.0)
+        if converged.all():  # every start stopped moving: the rest would be rejected steps
+            break
     return x, cost
 
 
