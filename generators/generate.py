@@ -320,7 +320,7 @@ def generate_dataset(
     test_split = not split.startswith("train")
     if test_split:
         _write_targets(out, split, scene_ids)
-    write_detection_annotations(BopDataset(out, split), targets=test_split)  # + scene_gt_coco
+    write_detection_annotations(BopDataset(out, split), write_targets=test_split)  # + scene_gt_coco
     return GenerateReport(
         scenes=len(results),
         scenes_skipped=sum(r.skipped for r in results),

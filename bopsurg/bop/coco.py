@@ -151,12 +151,12 @@ def write_detection_annotations(
     dataset: BopDataset,
     *,
     keep_targets: bool = False,
-    targets: bool = True,
+    write_targets: bool = True,
     progress: bool = False,
 ) -> int:
     """Write the files of the detection tasks for a split: ``scene_gt_coco.json`` in every
     scene that has masks, and ``test_targets_bop24.json`` (every image with GT) at the root
-    (an existing one is kept with ``keep_targets``; none is written without ``targets``, as
+    (an existing one is kept with ``keep_targets``; none is written without ``write_targets``, as
     for a training split: the root's targets file belongs to the test split).
 
     Returns:
@@ -172,7 +172,7 @@ def write_detection_annotations(
         save_json(scene.scene_dir / SCENE_GT_COCO, content)
         written += 1
     path = dataset.root / TARGETS_BOP24_FILENAME
-    if targets and not (keep_targets and path.exists()):
+    if write_targets and not (keep_targets and path.exists()):
         targets = enumerate_image_targets({s.scene_id: s.gt for s in dataset.iter_scenes()})
         save_image_targets(path, targets)
     return written
