@@ -168,8 +168,9 @@ class FitSettings:
     forward_weight: float = 1.0  # weight of the forward term's mean against the reverse one
     # the wire as a tube: the reverse term measures to the tube, the outline term samples
     # the tube's sides; off, the centre line alone explains the foreground (the first fit).
-    # On the held-out split from the pose head's poses and the segmenter's masks: median TE
-    # 3.22 -> 3.00 mm, RE 5.29 -> 5.18 deg (ground-truth masks: 3.01 -> 2.90 mm, 4.77 -> 3.95 deg)
+    # bench_refine on the 478 held-out needles, from the pose head's poses: segmenter masks RE
+    # 5.44 -> 4.92 deg, MSSD 3.54 -> 3.41 mm, TE 2.85 -> 2.98 mm; ground-truth masks RE 4.77 ->
+    # 3.79 deg, TE 2.84 -> 2.63 mm, MSSD 3.52 -> 2.97 mm
     tube: bool = True
     scale_outline: float = 1.0  # Geman-McClure scale of the tube-side residuals, px
     outline_weight: float = 1.0  # weight of the outline term's mean against the reverse one
@@ -179,7 +180,7 @@ class FitSettings:
     # the arc's projection, not its depth when the arc is seen edge-on, where depth and the
     # rotation in the arc's plane trade off; the prior keeps those directions where they were.
     # The tube's unbiased image cost needs less of it: 0.3 (the first fit's) gives TE 3.30 mm,
-    # 0.05 gives 3.00 mm, 0.02 gives 3.12 mm on the held-out split
+    # 0.05 gives 3.00 mm, 0.02 gives 3.12 mm (every 2nd held-out image, GT visible boxes)
     prior_deg: float = 8.0
     prior_mm: tuple[float, float, float] = (1.5, 1.5, 4.0)  # camera x, y, z
     prior_weight: float = 0.05  # against the mean image cost (px²-like units)
