@@ -32,6 +32,7 @@ from bopsurg.viz.rerun_compare import (
     worst_regressions,
 )
 from tests.bopsurg.evaluation.test_bop24 import _hand_dataset
+from tests.bopsurg.recordings import read_chunks, scalar_series
 
 
 def _shifted(est: PoseEstimates, every: int, shift_mm: float) -> PoseEstimates:
@@ -177,30 +178,10 @@ def test_samples_written_before_object_ids_still_load(tmp_path):
 # -- the recording --------------------------------------------------------------------------
 
 
-def _chunks(path):
-    from rerun.chunk import RrdReader
-
-    chunks: dict[str, list] = {}
-    for chunk in RrdReader(str(path)).stream().collect().stream():
-        chunks.setdefault(chunk.entity_path, []).append(chunk)
-    return chunks
-
-
-def _scalars(chunks, entity: str) -> pd.Series:
-    frames, values = [], []
-    for chunk in chunks[entity]:
-        rb = chunk.to_record_batch()
-        if "frame" not in rb.schema.names:
-            continue
-        frames += rb.column("frame").to_pylist()
-        values += [v[0] for v in rb.column("Scalars:scalars").to_pylist()]
-    return pd.Series(values, index=frames, dtype=float).sort_index()
-
-
 def test_recording_holds_both_methods_on_one_timeline(compared, evals):
     path = compared / "compare.rrd"
     assert path.stat().st_size > 0
-    chunks = _chunks(path)
+    chunks = read_chunks(path)
     expected = {
         *(f"/metrics/{m}/{k}" for m in ("re", "te", "mssd", "mspd") for k in ("good", "worse")),
         *(f"/diff/{m}/worse" for m in ("re", "te", "mssd", "mspd")),
@@ -218,16 +199,19 @@ def test_recording_holds_both_methods_on_one_timeline(compared, evals):
     assert set(chunks) >= expected
     folders = load_eval_folders(evals[1])
     frames = comparison_frames(folders)
-    good, worse = _scalars(chunks, "/metrics/mssd/good"), _scalars(chunks, "/metrics/mssd/worse")
+    good, worse = (
+        scalar_series(chunks, "/metrics/mssd/good"),
+        scalar_series(chunks, "/metrics/mssd/worse"),
+    )
     assert good.to_numpy() == pytest.approx(frames["mssd/good"].dropna().to_numpy())
     assert worse.to_numpy() == pytest.approx(frames["mssd/worse"].dropna().to_numpy())
-    diff = _scalars(chunks, "/diff/mssd/worse")
+    diff = scalar_series(chunks, "/diff/mssd/worse")
     both = good.index.intersection(worse.index)
     assert diff.index.tolist() == both.tolist()
     assert diff.to_numpy() == pytest.approx((worse[both] - good[both]).to_numpy())
     assert (diff > 1.0).any()  # the moved estimates
     # The regression markers: rank 1 on the frame with the largest increase.
-    ranks = _scalars(chunks, "/diff/regressions/worse")
+    ranks = scalar_series(chunks, "/diff/regressions/worse")
     assert ranks.idxmin() == diff.idxmax()
     text = chunks["/report/regressions"][0].to_record_batch().to_pylist()[0]
     assert f"| 1 | {diff.idxmax()} |" in str(text)
@@ -236,7 +220,7 @@ def test_recording_holds_both_methods_on_one_timeline(compared, evals):
 def test_recording_forest_plot_is_the_compared_differences(compared, evals):
     report = json.loads((compared / "compare.json").read_text())
     comparison = report["comparisons"][str(evals[1][1])]
-    chunks = _chunks(compared / "compare.rrd")
+    chunks = read_chunks(compared / "compare.rrd")
     rb = chunks["/differences/worse/table/points"][0].to_record_batch().to_pylist()[0]
     labels = rb["Points2D:labels"]
     xs = [p[0] for p in rb["Points2D:positions"]]

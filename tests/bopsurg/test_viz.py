@@ -6,7 +6,6 @@ import builtins
 import dataclasses
 
 import numpy as np
-import pandas as pd
 import pytest
 
 pytest.importorskip("rerun")
@@ -20,6 +19,7 @@ from bopsurg.estimation import Detections
 from bopsurg.evaluation.runner import evaluate
 from bopsurg.example import ExampleSpec, write_example_dataset
 from bopsurg.viz import frame_table, log_evaluation, select_image_frames
+from tests.bopsurg.recordings import read_chunks, scalar_series
 
 EXPECTED = {
     "/world",
@@ -65,22 +65,7 @@ def logged(example, tmp_path_factory):
     path = log_evaluation(
         dataset, est, ev, tmp_path_factory.mktemp("rrd") / "eval.rrd", worst=3, detections=boxes
     )
-    store = RrdReader(str(path)).stream().collect()
-    chunks: dict[str, list] = {}
-    for chunk in store.stream():
-        chunks.setdefault(chunk.entity_path, []).append(chunk)
-    return ev, path, chunks
-
-
-def _scalars(chunks, entity: str) -> pd.Series:
-    frames, values = [], []
-    for chunk in chunks[entity]:
-        rb = chunk.to_record_batch()
-        if "frame" not in rb.schema.names:
-            continue
-        frames += rb.column("frame").to_pylist()
-        values += [v[0] for v in rb.column("Scalars:scalars").to_pylist()]
-    return pd.Series(values, index=frames).sort_index()
+    return ev, path, read_chunks(path)
 
 
 def test_entities(logged):
@@ -146,18 +131,18 @@ def test_mssd_scalars_equal_errors_csv(logged):
         .set_index("frame")["mssd"]
         .sort_index()
     )
-    got = _scalars(chunks, "/metrics/mssd")
+    got = scalar_series(chunks, "/metrics/mssd")
     assert len(expected) > 0
     assert list(got.index) == list(expected.index)
     np.testing.assert_allclose(got.to_numpy(), expected.to_numpy(), rtol=0, atol=1e-12)
-    ids = _scalars(chunks, "/frame_info/im_id")
+    ids = scalar_series(chunks, "/frame_info/im_id")
     assert list(ids.to_numpy()) == list(frames["im_id"].to_numpy(float))
 
 
 def test_worst_rank_marks_largest_mssd(logged):
     ev, _, chunks = logged
     frames = frame_table(ev.errors, ev.gt_rows)
-    rank = _scalars(chunks, "/metrics/worst_rank")
+    rank = scalar_series(chunks, "/metrics/worst_rank")
     assert len(rank) == 3
     top = frames.sort_values("mssd", ascending=False).head(3)["frame"].tolist()
     assert [int(f) for f in rank.sort_values().index] == top

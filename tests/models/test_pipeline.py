@@ -31,13 +31,7 @@ from bopsurg.models.estimator import SHIPPED  # noqa: E402
 SMALL = ["--width", "320", "--height", "240", "--K", "180,180,160,120", "--no-progress"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    # Tiny models on a shared 2-core machine: one thread is faster and deterministic.
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -15,13 +15,7 @@ from bopsurg.cli.main import main  # noqa: E402
 from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
 from bopsurg.models.checkpoint import load_tensors  # noqa: E402
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
