@@ -163,7 +163,7 @@ class FitSettings:
     # ground-truth visible masks, without prior, the median depth drift is 5.8 mm with
     # Cauchy at 3 px, 4.3 mm with this loss at 3 px, 3.0 mm at 1.5 px (the rest is arcs
     # seen edge-on, where the image does not fix the depth and the prior must). With the
-    # tube below, the same drift is 1.1 mm (measured on 232 held-out needles)
+    # tube below, the same drift is 1.1 mm (232 held-out needles; a scratch script, no bench)
     scale_forward: float = 1.5
     forward_weight: float = 1.0  # weight of the forward term's mean against the reverse one
     # the wire as a tube: the reverse term measures to the tube, the outline term samples
@@ -180,7 +180,8 @@ class FitSettings:
     # the arc's projection, not its depth when the arc is seen edge-on, where depth and the
     # rotation in the arc's plane trade off; the prior keeps those directions where they were.
     # The tube's unbiased image cost needs less of it: 0.3 (the first fit's) gives TE 3.30 mm,
-    # 0.05 gives 3.00 mm, 0.02 gives 3.12 mm (every 2nd held-out image, GT visible boxes)
+    # 0.05 gives 3.00 mm, 0.02 gives 3.12 mm (every 2nd held-out image, GT visible boxes; a
+    # scratch sweep: bench_refine --fit prior_weight=... redoes it with the detector's boxes)
     prior_deg: float = 8.0
     prior_mm: tuple[float, float, float] = (1.5, 1.5, 4.0)  # camera x, y, z
     prior_weight: float = 0.05  # against the mean image cost (px²-like units)
