@@ -75,6 +75,8 @@ examples:
   bopsurg train pose data/needle --out runs/pose --config pose.yaml --epochs 80
   bopsurg train detector data/needle --split train --out runs/det --epochs 24
   bopsurg train pose data/needle --split train --out runs/pose --epochs 40
+  bopsurg train pose data/needle --split train,train_wide --out runs/pose_ft \\
+      --init models/weights/pose.pt --epochs 6 --lr 3e-4     # fine-tune on two splits
   bopsurg train pose data/needle --out runs/pose_gpu --preset paper --device cuda
   bopsurg predict data/needle --split test --out results.csv \\
       --detector runs/det/detector.pt --pose runs/pose/pose.pt
@@ -92,7 +94,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("model", choices=("detector", "pose"), help="which model to train")
     p.add_argument("dataset", nargs="?", help="BOP dataset root")
-    p.add_argument("--split", default="train", help="training split (default: train)")
+    p.add_argument(
+        "--split",
+        default="train",
+        help="training split, or several comma-separated (train,train_wide) read as one "
+        "(default: train)",
+    )
     p.add_argument(
         "--val-split", default=None, help="validation split (default: every 10th scene held out)"
     )
@@ -108,6 +115,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch-size", type=int, default=None, help="batch size (16 det, 32 pose)")
     p.add_argument("--lr", type=float, default=None, help="peak learning rate (2e-3 / 1e-3)")
     p.add_argument("--seed", type=int, default=None, help="seed of every random choice (default 0)")
+    p.add_argument(
+        "--init",
+        metavar="PT",
+        default=None,
+        help="fine-tune: start from this exported checkpoint (e.g. models/weights/pose.pt; same "
+        "kind and config) instead of random weights (recipe.init in --config)",
+    )
     p.add_argument(
         "--workers", type=int, default=None, help="background loader processes (default 0)"
     )
@@ -216,7 +230,12 @@ def resolve(args: argparse.Namespace, num_classes: int) -> tuple[str, int, Any, 
             cfg, recipe = replace(cfg, symmetric=True), replace(recipe, symmetric=True)
     overrides = {
         k: v
-        for k, v in (("epochs", args.epochs), ("batch_size", args.batch_size), ("lr", args.lr))
+        for k, v in (
+            ("epochs", args.epochs),
+            ("batch_size", args.batch_size),
+            ("lr", args.lr),
+            ("init", args.init),
+        )
         if v is not None
     }
     recipe = replace(recipe, augment=augment_config(data.get("augment"), f"{where}: augment"))

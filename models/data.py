@@ -27,6 +27,7 @@ validation frames never share a trajectory replay with training frames.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -39,7 +40,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.dataset import BopDataset, BopScene, list_scene_ids
 from bopsurg.bop.images import image_size, load_depth, load_mask, load_rgb
 from bopsurg.errors import DatasetError
 from bopsurg.models.detector.letterbox import letterbox
@@ -51,6 +52,60 @@ log = logging.getLogger(__name__)
 CONTEXT_RATIO = 2.5
 
 T = TypeVar("T")
+
+
+#: Scene-id stride between the splits of a :class:`SplitUnion` (BOP scene ids have 6 digits).
+SCENE_ID_STRIDE = 1_000_000
+
+
+class SplitUnion(BopDataset):
+    """Several splits of one dataset read as one training set (e.g. ``train,train_wide``: the
+    default viewpoints and a wider domain). The k-th split's scene ``s`` appears as scene
+    ``k * SCENE_ID_STRIDE + s``, so the first split keeps its ids (and a one-split union reads
+    exactly as the split). Models, models_info and cameras come from the shared root.
+
+    Raises:
+        DatasetError: A split folder is missing, or a split is named twice.
+    """
+
+    def __init__(self, root: str | Path, splits: Sequence[str]) -> None:
+        names = [s.strip() for s in splits]
+        if not names or any(not s for s in names):
+            raise DatasetError(f"empty split name in {','.join(splits)!r}", path=root)
+        twice = sorted({s for s in names if names.count(s) > 1})
+        if twice:
+            raise DatasetError(f"split {twice[0]!r} is named twice", path=root)
+        super().__init__(root, names[0])
+        self.parts = [self] + [BopDataset(root, s) for s in names[1:]]
+        self.split = ",".join(names)
+
+    def __repr__(self) -> str:
+        return f"SplitUnion({str(self.root)!r}, splits={self.split!r})"
+
+    @functools.cached_property
+    def scene_ids(self) -> list[int]:
+        """Every split's scene ids, offset by ``k * SCENE_ID_STRIDE`` for the k-th split."""
+        out = list_scene_ids(self.split_dir)
+        for k, part in enumerate(self.parts[1:], start=1):
+            out += [k * SCENE_ID_STRIDE + s for s in part.scene_ids]
+        return out
+
+    def scene(self, scene_id: int) -> BopScene:
+        """The scene of the split ``scene_id // SCENE_ID_STRIDE`` (cached there)."""
+        k, sid = divmod(int(scene_id), SCENE_ID_STRIDE)
+        if k == 0:
+            return super().scene(sid)
+        if k >= len(self.parts):
+            raise DatasetError(f"no scene {scene_id} in splits {self.split}", path=self.root)
+        return self.parts[k].scene(sid)
+
+
+def open_split(root: str | Path, split: str) -> BopDataset:
+    """``split`` of the dataset at ``root``; a comma-separated list (``train,train_wide``)
+    opens a :class:`SplitUnion`."""
+    if "," in split:
+        return SplitUnion(root, split.split(","))
+    return BopDataset(root, split)
 
 
 def split_scenes(

@@ -50,6 +50,9 @@ class DetectorRecipe:
     min_visib: float = 0.1
     val_every: int = 5
     augment: PhotometricConfig = field(default_factory=PhotometricConfig)
+    #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
+    #: fine-tune it on new data; "" = random initialisation.
+    init: str = ""
 
     def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
@@ -146,7 +149,10 @@ def train_detector(
         {"val_split": val_split, "max_images": max_images, "classes": list(classes)},
         cfg.to_dict(),
     )  # fmt: skip
-    legacy = {"model": preset_cfg.to_dict(), "recipe": {"augment": asdict(PhotometricConfig())}}
+    legacy = {
+        "model": preset_cfg.to_dict(),
+        "recipe": {"augment": asdict(PhotometricConfig()), "init": ""},
+    }
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
     write_config(out, resolved("detector", preset, seed, cfg, recipe, loader))
     train = load_detection_set(
@@ -160,8 +166,11 @@ def train_detector(
         cache_mb=loader.cache_mb, cache_items=loader.cache_items,
     )  # fmt: skip
     log.info("detector: %d train images, %d validation images", len(train), len(val))
-    model = YoloxDetector(cfg).to(dev)
+    model = YoloxDetector(cfg)
     meta = {"classes": list(classes)}
+    if recipe.init and state is None:
+        training.init_weights(model, recipe.init, "detector", cfg.to_dict(), meta)
+    model = model.to(dev)
     export = training.Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
     step = _step_fn(model, recipe, dev, seed)
     return training.fit(

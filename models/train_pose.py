@@ -59,6 +59,9 @@ class PoseRecipe:
     val_every: int = 5
     symmetric: bool = False
     augment: PhotometricConfig = field(default_factory=PhotometricConfig)
+    #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
+    #: fine-tune it on new data; "" = random initialisation.
+    init: str = ""
 
     def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
@@ -273,7 +276,10 @@ def train_pose(
         cfg.to_dict(),
     )  # fmt: skip
     legacy_cfg = replace(preset_cfg, symmetric=cfg.symmetric)  # runs before config files
-    legacy = {"model": legacy_cfg.to_dict(), "recipe": {"augment": asdict(PhotometricConfig())}}
+    legacy = {
+        "model": legacy_cfg.to_dict(),
+        "recipe": {"augment": asdict(PhotometricConfig()), "init": ""},
+    }
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
     write_config(out, resolved("pose", preset, seed, cfg, recipe, loader))
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
@@ -289,7 +295,10 @@ def train_pose(
     )  # fmt: skip
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
 
-    model = GdrPoseNet(cfg).to(dev)
+    model = GdrPoseNet(cfg)
+    if recipe.init and state is None:
+        training.init_weights(model, recipe.init, "pose", cfg.to_dict(), geo.to_meta())
+    model = model.to(dev)
     export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
     step = _step_fn(model, cfg, geo, recipe, dev, seed)
     return training.fit(

@@ -43,8 +43,8 @@ from tqdm import tqdm
 from bopsurg.atomic import atomic_path, write_text
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError, CheckpointError
-from bopsurg.models.checkpoint import load_tensors, save_checkpoint
-from bopsurg.models.data import split_scenes
+from bopsurg.models.checkpoint import load_checkpoint, load_tensors, load_weights, save_checkpoint
+from bopsurg.models.data import open_split, split_scenes
 from bopsurg.models.ema import ModelEMA
 
 log = logging.getLogger(__name__)
@@ -221,9 +221,10 @@ class Splits:
 
 def open_splits(dataset: str | Path, split: str, val_split: str | None) -> Splits:
     """``split`` of ``dataset`` for training; validation on all of ``val_split``, or, when
-    None, on every 10th scene of ``split`` held out (whole scenes: no shared trajectories)."""
-    ds = BopDataset(dataset, split)
-    val_ds = BopDataset(dataset, val_split) if val_split else None
+    None, on every 10th scene of ``split`` held out (whole scenes: no shared trajectories).
+    Either may name several splits, comma-separated (:class:`~bopsurg.models.data.SplitUnion`)."""
+    ds = open_split(dataset, split)
+    val_ds = open_split(dataset, val_split) if val_split else None
     train_ids, val_ids = split_scenes(ds, 10, val_ds)
     if val_ds is None:
         return Splits(ds, train_ids, ds, val_ids)
@@ -254,6 +255,52 @@ def open_run(
     state = run.load_state()
     torch.manual_seed(settings.seed)
     return run, state
+
+
+def init_weights(
+    model: nn.Module,
+    path: str | Path,
+    kind: str,
+    config: dict[str, Any],
+    meta: dict[str, Any] | None = None,
+) -> None:
+    """Start ``model`` from the exported checkpoint ``path`` (fine-tuning).
+
+    The checkpoint must hold a ``kind`` model of the same ``config``; with ``meta``, every
+    key of it that the checkpoint's meta also has must agree (the pose head's object
+    normaliser and surface regions: weights trained for other regions would be mislabelled).
+
+    Raises:
+        CheckpointError: Missing, corrupt or another kind of checkpoint.
+        BopsurgError: Another architecture or object geometry than this run's.
+    """
+    import numpy as np
+
+    state, info = load_checkpoint(path, kind)
+    where = f"recipe.init {path}"
+    diff = sorted(k for k in {*config, *info["config"]} if config.get(k) != info["config"].get(k))
+    if diff:
+        k = diff[0]
+        raise BopsurgError(
+            f"{where}: its {kind} config differs from this run's ({', '.join(diff)}; "
+            f"{k}: {info['config'].get(k)!r} there, {config.get(k)!r} here)"
+        )
+    theirs = info.get("meta") or {}
+    for k, mine in (meta or {}).items():
+        if k not in theirs or k in ("provenance", "epoch", "validation"):
+            continue
+        a, b = theirs[k], mine
+        same = (
+            np.allclose(np.asarray(a, float), np.asarray(b, float), atol=1e-4)
+            if isinstance(a, list | float)
+            and isinstance(b, list | float)
+            and np.shape(a) == np.shape(b)
+            else a == b
+        )
+        if not same:
+            raise BopsurgError(f"{where}: its meta {k!r} differs from this dataset's object")
+    load_weights(model, state, path)
+    log.info("%s: starting from %s", kind, path)
 
 
 def provenance(settings: RunSettings, seconds: float, device: torch.device) -> dict[str, Any]:
