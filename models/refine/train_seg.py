@@ -34,7 +34,14 @@ from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.errors import BopsurgError
 from bopsurg.models.checkpoint import save_checkpoint
-from bopsurg.models.data import CONTEXT_RATIO, InstanceRecord, list_instances, split_scenes
+from bopsurg.models.data import (
+    CONTEXT_RATIO,
+    InstanceRecord,
+    list_instances,
+    open_split,
+    split_scenes,
+)
+from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.pose.roi import crop, dzi_boxes
 from bopsurg.models.refine.fit import ArcModel
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig, seg_loss
@@ -125,12 +132,25 @@ def make_batch(
 
 
 def train(
-    data: Path, out: Path, steps: int, batch: int, seed: int, cfg: SegConfig, progress: bool
+    data: Path,
+    out: Path,
+    steps: int,
+    batch: int,
+    seed: int,
+    cfg: SegConfig,
+    progress: bool,
+    split: str = "train",
+    augment: str = "off",
 ) -> Path:
-    """Train and write OUT/needle_seg.pt; returns its path."""
+    """Train and write OUT/needle_seg.pt; returns its path.
+
+    ``split`` may name several splits (``train,train_wide``); ``augment`` names a
+    :class:`~bopsurg.models.photometric.PhotometricConfig` preset applied to the crops
+    (``off``: none, the shipped recipe; ``domain``: blur, noise, gamma, colour, JPEG)."""
     torch.manual_seed(seed)
     torch.set_num_threads(max(1, torch.get_num_threads()))
-    ds = BopDataset(data, "train")
+    ds = open_split(data, split)
+    photometric = PhotometricConfig(**PhotometricConfig.preset_values(augment))
     info = ds.models_info.get(1, {})
     try:
         kp = info["keypoints"]
@@ -157,6 +177,8 @@ def train(
             g["lr"] = lr
         idx = torch.randint(len(items), (batch,), generator=gen)
         x, y = make_batch(items, idx, cfg, gen)
+        if augment != "off":  # seeded per (step, sample): no draw from gen, so "off" is unchanged
+            x = augment_batch(x, photometric, batch_seeds(seed, step, idx))
         loss = seg_loss(net(x), y)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -172,6 +194,8 @@ def train(
         "dataset": str(data),
         "instances": len(items),
         "recipe": {"steps": steps, "batch": batch, "lr": 3e-3, "seed": seed},
+        **({"split": split} if split != "train" else {}),
+        **({"augment": augment} if augment != "off" else {}),
         "train_seconds": round(seconds, 1),
         "torch": torch.__version__,
     }
@@ -189,6 +213,15 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     ap.add_argument("dataset", type=Path, help="BOP dataset root with a train split")
+    ap.add_argument(
+        "--split", default="train", help="training split(s), comma-separated (default: train)"
+    )
+    ap.add_argument(
+        "--augment",
+        default="off",
+        choices=sorted(PhotometricConfig.PRESETS),
+        help="photometric augmentation preset of the crops (default: off)",
+    )
     ap.add_argument("--out", type=Path, required=True, help="run folder")
     ap.add_argument("--steps", type=int, default=1500, help="optimiser steps (default 1500)")
     ap.add_argument("--batch", type=int, default=16)
@@ -200,7 +233,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         cfg = SegConfig(roi=args.roi, width=args.width)
-        train(args.dataset, args.out, args.steps, args.batch, args.seed, cfg, not args.no_progress)
+        train(
+            args.dataset, args.out, args.steps, args.batch, args.seed, cfg,
+            not args.no_progress, split=args.split, augment=args.augment,
+        )  # fmt: skip
     except (BopsurgError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)  # noqa: T201 (the CLI's one-line error)
         return 2
