@@ -44,10 +44,11 @@ byte-identical files.
 models/obj_000001.ply is your mesh and every GT pose is its pose. Its arc (centre, normal,
 radius, extent; the tip is the end that tapers) is fitted and laid onto the recorded needle's
 arc (centres, planes and arc middles coincide), so the replayed motion, grasps and driving
-along the arc stay the recorded ones (the recorded needle: the one --needle-* describe, by
-default the one 'bopsurg record' uses). One log line gives the fitted arc. A radius more than
-5 % off the recorded one is kept (your mesh defines the geometry): it is rendered at its own
-size on the recorded arc's centre, with a warning; more than 5x off is taken for a mesh not in
+along the arc stay the recorded ones (the recorded needle: the one --needle-* describe, else
+the one the bags were recorded for: 'bopsurg record --object-model PLY' plans the episode for
+your needle, so the grasps hold its wire). One log line gives the fitted arc. A radius more
+than 5 % off the recorded one is kept (your mesh defines the geometry): it is rendered at its
+own size on the recorded arc's centre, with a warning; more than 5x off is taken for a mesh not in
 mm and refused, like meshes that are not needles (one line, nothing written). The mesh's path
 and sha256 are recorded in bopsurg_generate.json: resuming with another mesh is refused.
 

@@ -25,6 +25,8 @@ PSM2 grasps the emerged tip side (hand-off), PSM1 lets go and PSM2 pulls the nee
 Given time (about 35 s or more), PSM2 hands the needle back for a second throw. Motions are
 minimum-jerk with pauses, speed changes and 8-12 Hz hand tremor; joints come from inverse
 kinematics within the PSM limits. The same --seed always gives the same bag.
+With --object-model PLY the episode is planned for that needle (its fitted arc radius,
+extent and wire); the bag records them, and 'bopsurg generate' replays it with them.
 
 Topics (stamps: header = bag time; t = 0 at 2023-11-14T22:13:20Z unless recorded otherwise):
   /psm1/measured_js, /psm2/measured_js     sensor_msgs/JointState  6 joints: outer_yaw,
@@ -44,6 +46,7 @@ EPILOG = """\
 examples:
   bopsurg record --out bags/ep001.bag --seed 1
   bopsurg record --out bags/ep002 --seed 2 --duration 45 --format mcap
+  bopsurg record --out bags/mine.bag --seed 3 --object-model Needle.ply   # your needle
 """
 
 
@@ -68,6 +71,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="bag format (default: ros1 for a .bag name, else ros2 with sqlite3 storage)",
     )
+    p.add_argument(
+        "--object-model",
+        metavar="PLY",
+        default=None,
+        help="plan the episode for this needle mesh (mm): its fitted radius, wire and arc "
+        "(recorded in the bag; 'generate' then uses them)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     p.set_defaults(func=run)
 
@@ -79,7 +89,18 @@ def run(args: argparse.Namespace) -> int:
     fmt = args.format or ("ros1" if out.suffix == ".bag" else "ros2")
     if (out.exists() or out.is_symlink()) and not args.overwrite:
         raise InputError("exists already; pass --overwrite to replace it", path=out)
-    rec = synthesize_suturing(args.seed, duration=args.duration, rate_hz=args.rate)
+    needle, mesh = None, None
+    if args.object_model is not None:
+        from bopsurg.generators.object_model import needle_spec_of_mesh
+
+        needle, mesh = needle_spec_of_mesh(args.object_model)
+    rec = synthesize_suturing(args.seed, duration=args.duration, rate_hz=args.rate, needle=needle)
+    if mesh is not None:
+        rec.meta["object_model"] = mesh.record()
+        print(
+            f"needle from {mesh.path}: radius {mesh.arc.radius:.2f} mm, arc "
+            f"{mesh.arc.extent_deg:.1f} deg, wire {2 * mesh.arc.wire_radius:.2f} mm"
+        )
     counts = write_bag(out, rec, format=fmt, overwrite=args.overwrite)
     throws = rec.meta["throws"]
     print(

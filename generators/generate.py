@@ -48,7 +48,7 @@ from bopsurg.generators.replay import (
     frame_times,
     run_replay,
 )
-from bopsurg.needle import needle_keypoints
+from bopsurg.needle import NeedleSpec, needle_keypoints
 from bopsurg.plugins import load_plugin
 
 log = logging.getLogger(__name__)
@@ -151,6 +151,39 @@ def resolve_object_model(
     model = scene.needle_model
     assert model is not None
     return replace(settings, backend_config={**config, "object_model": model.record()}), model
+
+
+def with_recorded_needle(
+    settings: GenerateSettings, needles: dict[str, dict[str, Any] | None]
+) -> GenerateSettings:
+    """The settings with the needle the bags were recorded for (their meta's ``needle``, e.g.
+    ``record --object-model``), unless ``--needle-*`` set one or the bags used bopsurg's
+    default needle (then nothing changes, so older datasets resume).
+
+    Raises:
+        InputError: The bags were recorded for different needles.
+    """
+    from dataclasses import asdict
+
+    if "needle" in settings.backend_config:
+        return settings
+    default = asdict(NeedleSpec())
+    specs = {b: {**default, **n} for b, n in needles.items() if isinstance(n, dict)}
+    if not specs:
+        return settings
+    first = min(specs)
+    other = next((b for b in sorted(specs) if specs[b] != specs[first]), None)
+    if other is not None:
+        raise InputError(
+            f"recorded for another needle than {first} (radius {specs[other]['arc_radius']} "
+            f"vs {specs[first]['arc_radius']} mm); generate such bags separately",
+            path=other,
+        )
+    spec = specs[first]
+    if spec == default:
+        return settings
+    log.info("the bags were recorded for needle %s", spec)
+    return replace(settings, backend_config={**settings.backend_config, "needle": spec})
 
 
 def _check_same_object_model(old: dict[str, Any], new: dict[str, Any], info_path: Path) -> None:
@@ -277,7 +310,6 @@ def generate_dataset(
         raise InputError("must be >= 1", field="replays")
     if workers < 1:
         raise InputError("must be >= 1", field="workers")
-    settings, needle_model = resolve_object_model(settings)  # before anything is written
     if settings.domain not in DOMAINS:
         raise InputError(f"must be one of {', '.join(DOMAINS)}", field="domain")
     bag_paths = [str(b) for b in bags]
@@ -287,10 +319,13 @@ def generate_dataset(
         if not Path(b).exists():
             raise InputError("file not found", path=b)
     # Read every bag once here: bad bags fail before any work starts, and totals are known.
-    frames_per_bag = []
+    frames_per_bag, needles = [], {}
     for b in bag_paths:
         rec = _read_bag(b, settings.topic_map)
         frames_per_bag.append(len(frame_times(rec.start, rec.end, settings.period)))
+        needles[b] = rec.meta.get("needle")
+    settings = with_recorded_needle(settings, needles)
+    settings, needle_model = resolve_object_model(settings)  # before anything is written
     total = sum(frames_per_bag) * settings.replays
     out = Path(out)
     for folder in (out, out / "models"):  # leftovers of a killed driver (not scene folders)

@@ -149,6 +149,30 @@ def load_needle_model(
     return NeedleModel(model, T, arc, recorded, str(p), digest)
 
 
+def needle_spec_of_mesh(path: str | Path) -> tuple[NeedleSpec, NeedleModel]:
+    """The :class:`NeedleSpec` of a user's needle mesh (``record --object-model``): its fitted
+    centre-line radius, wire diameter and extent (tip taper as bopsurg's), so an episode can be
+    planned (grasps on its wire, driving along its arc) for that needle.
+
+    Raises:
+        ModelError: See :func:`load_needle_model`; also an arc too short for the spec.
+    """
+    model = load_needle_model(path)
+    arc = model.arc
+    tip = NeedleSpec.tip_deg
+    if arc.extent_deg <= tip:
+        raise ModelError(
+            f"fitted arc of {arc.extent_deg:.1f} deg is shorter than a needle tip ({tip} deg)",
+            path=model.path,
+        )
+    spec = NeedleSpec(
+        arc_radius=round(float(arc.radius), 4),
+        wire_diameter=round(float(2 * arc.wire_radius), 4),
+        body_deg=round(float(arc.extent_deg) - tip, 3),
+    )
+    return spec, model
+
+
 def needle_model_from_config(value: Any, needle: NeedleSpec) -> NeedleModel:
     """The ``object_model`` scene key of a generation: a path, or ``{"path", "sha256"}``.
 
@@ -165,4 +189,10 @@ def needle_model_from_config(value: Any, needle: NeedleSpec) -> NeedleModel:
     raise TypeError(f"'object_model' must be a PLY path or {{path, sha256}}, got {value!r}")
 
 
-__all__ = ["UNIT_RATIO", "NeedleModel", "load_needle_model", "needle_model_from_config"]
+__all__ = [
+    "UNIT_RATIO",
+    "NeedleModel",
+    "load_needle_model",
+    "needle_model_from_config",
+    "needle_spec_of_mesh",
+]

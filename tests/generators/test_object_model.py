@@ -261,3 +261,50 @@ def test_a_training_split_keeps_the_test_splits_targets(registered, files, tmp_p
     assert (out / "train" / "000002").is_dir()  # a scene the test split does not have
     for name, content in before.items():
         assert (out / name).read_bytes() == content
+
+
+def _grip_radius(bag: Path) -> float:
+    """Median in-plane distance (mm) of PSM1's tool tip from the needle's arc centre while
+    PSM1 holds the needle: the wire's radius less the tilted jaws' reach (same for one seed)."""
+    from bopsurg.generators.bag_reader import read_bag
+    from bopsurg.generators.kinematics import psm_tip_pose
+
+    rec = read_bag(bag)
+    hold = next(g for g in rec.meta["grasps"] if g["arm"] == "psm1")
+    times, joints = rec.psm_joints["psm1"]
+    n_times, needle = rec.needle_pose
+    keep = (times > hold["t_from"] + 0.05) & (times < hold["t_to"] - 0.05)
+    base = DEFAULT_LAYOUT.psm_base(0)
+    radii = []
+    for t, q in zip(times[keep], joints[keep], strict=True):
+        T = needle[int(np.argmin(np.abs(n_times - t)))]
+        tip = np.linalg.inv(T) @ base @ psm_tip_pose(q)  # tool tip in the needle frame, m
+        radii.append(1e3 * np.hypot(tip[0, 3], tip[1, 3]))
+    return float(np.median(radii))
+
+
+def test_record_plans_for_the_users_needle_and_generate_replays_it(registered, tmp_path, capsys):
+    big = tmp_path / "big.ply"
+    save_ply(big, _moved(needle_mesh(NeedleSpec(arc_radius=12.0))))
+    mine, default = tmp_path / "mine.bag", tmp_path / "default.bag"
+    assert main(["record", "--out", str(mine), "--seed", "1", "--duration", "6",
+                 "--object-model", str(big)]) == 0  # fmt: skip
+    assert "radius 12.00 mm, arc 128.5 deg" in capsys.readouterr().out
+    assert main(["record", "--out", str(default), "--seed", "1", "--duration", "6"]) == 0
+    # same seed, same draws: the grasps hold the user's wire, 12 - 10.18 mm further out
+    assert _grip_radius(mine) - _grip_radius(default) == pytest.approx(1.82, abs=0.01)
+    capsys.readouterr()
+    out = tmp_path / "ds"
+    assert _generate(mine, out, "--period", "2", "--object-model", str(big)) == 0
+    assert "WARNING" not in capsys.readouterr().err  # the recorded needle is the user's
+    record = json.loads((out / "test" / "bopsurg_generate.json").read_text())
+    assert record["settings"]["backend_config"]["needle"]["arc_radius"] == pytest.approx(12.0)
+    assert check_dataset(out, "test") == []
+    # bags of two needles do not mix; the message names the odd one
+    mix = ["generate", str(default), str(mine), "--out", str(tmp_path / "mix"), *OPTS]
+    assert main(mix) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bopsurg: error: ")
+    assert str(mine) in err
+    assert "recorded for another needle" in err
+    assert not (tmp_path / "mix").exists()  # refused before anything was written
