@@ -29,7 +29,7 @@ from bopsurg.models import training
 from bopsurg.models.data import BatchReader, PoseBatch, PoseSet, load_pose_set
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
-from bopsurg.models.pose.config import PoseConfig
+from bopsurg.models.pose.config import TRAINING_ONLY, PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
 from bopsurg.models.pose.encodings import SiteRoi, ego_to_allo, rot6d_from_matrix, site_encode
 from bopsurg.models.pose.losses import gdr_losses
@@ -297,7 +297,9 @@ def train_pose(
 
     model = GdrPoseNet(cfg)
     if recipe.init and state is None:
-        training.init_weights(model, recipe.init, "pose", cfg.to_dict(), geo.to_meta())
+        training.init_weights(
+            model, recipe.init, "pose", cfg.to_dict(), geo.to_meta(), TRAINING_ONLY
+        )
     model = model.to(dev)
     export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
     step = _step_fn(model, cfg, geo, recipe, dev, seed)

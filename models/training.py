@@ -263,12 +263,15 @@ def init_weights(
     kind: str,
     config: dict[str, Any],
     meta: dict[str, Any] | None = None,
+    training_only: frozenset[str] = frozenset(),
 ) -> None:
     """Start ``model`` from the exported checkpoint ``path`` (fine-tuning).
 
-    The checkpoint must hold a ``kind`` model of the same ``config``; with ``meta``, every
-    key of it that the checkpoint's meta also has must agree (the pose head's object
-    normaliser and surface regions: weights trained for other regions would be mislabelled).
+    The checkpoint must hold a ``kind`` model of the same ``config``, but for the
+    ``training_only`` keys (loss weights ..., which a fine-tuning run may change). With
+    ``meta``, every key of it that the checkpoint's meta also has must agree (the pose head's
+    object normaliser and surface regions: weights trained for other regions would be
+    mislabelled).
 
     Raises:
         CheckpointError: Missing, corrupt or another kind of checkpoint.
@@ -278,7 +281,8 @@ def init_weights(
 
     state, info = load_checkpoint(path, kind)
     where = f"recipe.init {path}"
-    diff = sorted(k for k in {*config, *info["config"]} if config.get(k) != info["config"].get(k))
+    keys = {*config, *info["config"]} - training_only
+    diff = sorted(k for k in keys if config.get(k) != info["config"].get(k))
     if diff:
         k = diff[0]
         raise BopsurgError(

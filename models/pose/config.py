@@ -14,6 +14,13 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+#: Fields that only shape training (loss weights, train-time DZI jitter): a run may change
+#: them and still start from (``recipe.init``) a checkpoint trained with other values.
+TRAINING_ONLY = frozenset(
+    {"w_mask", "w_xyz", "w_region", "w_pm", "w_centroid", "w_z", "mask_loss", "dzi_scale",
+     "dzi_shift", "symmetric"}
+)  # fmt: skip
+
 NORMS = ("gn", "bn")
 MASK_LOSSES = ("bce", "l1")
 

@@ -6,12 +6,14 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 import yaml
 
 torch = pytest.importorskip("torch")
 
 from bopsurg.bop.dataset import BopDataset  # noqa: E402
+from bopsurg.bop.images import save_depth  # noqa: E402
 from bopsurg.cli.main import main  # noqa: E402
 from bopsurg.errors import DatasetError  # noqa: E402
 from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
@@ -24,11 +26,19 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    """An example dataset with a second split ``extra`` (a copy of ``test``, 3 scenes)."""
+    """An example dataset with depth (a plane at the needle, for the pose head's coordinates)
+    and a second split ``extra`` (a copy of ``test``, 3 scenes)."""
     root = tmp_path_factory.mktemp("ft")
-    ds = write_example_dataset(root, ExampleSpec(seed=2, scenes=3, images_per_scene=3))
-    shutil.copytree(ds.root / "test", ds.root / "extra")
-    return ds.root
+    ex = write_example_dataset(root, ExampleSpec(seed=2, scenes=3, images_per_scene=3))
+    ds = BopDataset(ex.root, ex.split)
+    for scene in ds.iter_scenes():
+        for im_id in scene.im_ids:
+            z = scene.gt[im_id][0].t[2] if scene.gt.get(im_id) else 100.0
+            path = scene.depth_path(im_id)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            save_depth(path, np.full((480, 640), z / 0.1))
+    shutil.copytree(ex.root / "test", ex.root / "extra")
+    return ex.root
 
 
 def test_a_union_offsets_the_later_splits_scene_ids(dataset):
@@ -108,3 +118,22 @@ def test_an_init_of_another_model_is_a_one_line_error(dataset, tmp_path, capsys)
     args = ["train", "pose", str(dataset), "--split", "test", "--out", str(tmp_path / "p")]
     assert main([*args, "--preset", "test", "--init", start, "--no-progress"]) == 2
     assert "holds a 'detector' model, expected 'pose'" in capsys.readouterr().err
+
+
+def test_a_pose_head_fine_tunes_with_other_loss_weights_not_other_sizes(dataset, tmp_path, capsys):
+    args = ["train", "pose", str(dataset), "--split", "test,extra", "--preset", "test"]
+    args += ["--batch-size", "2", "--epochs", "1", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    start = str(tmp_path / "a" / "pose.pt")
+    weights = tmp_path / "wz.yaml"
+    weights.write_text("pose: {w_z: 10.0, dzi_shift: 0.1}\n")  # training only: accepted
+    assert (
+        main([*args, "--out", str(tmp_path / "b"), "--init", start, "--config", str(weights)]) == 0
+    )
+    sizes = tmp_path / "roi.yaml"
+    sizes.write_text("pose: {z_unit_mm: 100.0}\n")  # changes what the output means: refused
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "c"), "--init", start, "--config", str(sizes)]) == 2
+    errors = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln]
+    assert len(errors) == 1, errors
+    assert "config differs from this run's (z_unit_mm;" in errors[0]
