@@ -31,6 +31,7 @@ from bopsurg.models.pose.decode import pnp_ransac_from_output, pose_from_output
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser
+from bopsurg.models.refine.fit import FitSettings
 from bopsurg.models.refine.refiner import NeedleRefiner
 from bopsurg.models.training import resolve_device
 from bopsurg.needle import needle_mesh
@@ -103,6 +104,7 @@ class GdrNetEstimator:
         decode: ``direct`` (rotation + SITE heads) or ``pnp`` (PnP-RANSAC on the coordinates;
             a ROI where PnP finds no solution keeps the direct pose, see ``pnp_fallback``).
         segmenter: Needle-segmenter checkpoint for the refinement, or None for none.
+        fit: The refinement's fit settings (default :class:`FitSettings`).
     """
 
     def __init__(
@@ -115,6 +117,7 @@ class GdrNetEstimator:
         max_per_object: int = 1,
         decode: str = "direct",
         segmenter: str | Path | None = None,
+        fit: FitSettings | None = None,
     ) -> None:
         if decode not in ("direct", "pnp"):
             raise BopsurgError(f"decode must be 'direct' or 'pnp', got {decode!r}")
@@ -132,7 +135,9 @@ class GdrNetEstimator:
         self.pnp_fallback = 0
         #: The refinement stage (needle only), or None.
         self.refiner = (
-            None if segmenter is None else NeedleRefiner.from_checkpoint(segmenter, self.device)
+            None
+            if segmenter is None
+            else NeedleRefiner.from_checkpoint(segmenter, self.device, fit)
         )
 
     @torch.inference_mode()
@@ -237,11 +242,13 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     the shipped model), ``device`` (``auto``), ``conf`` (0.05), ``max_per_object`` (1),
     ``decode`` (``direct`` or ``pnp``), ``no_detector`` (``1``: external boxes only),
     ``refine`` (``fit``: fit the needle arc to its full-resolution mask; ``none``: the network's
-    pose as it is; default ``fit`` when a segmenter is shipped, else ``none``) and
-    ``segmenter`` (its checkpoint; default: the shipped one).
+    pose as it is; default ``fit`` when a segmenter is shipped, else ``none``),
+    ``segmenter`` (its checkpoint; default: the shipped one) and ``min_explained`` (the fit's
+    out-of-domain guard: the share of the mask its wire must explain, else the network's pose
+    is kept; default :attr:`FitSettings.min_explained`).
     """
     known = {"detector", "pose", "device", "conf", "max_per_object", "decode", "no_detector"}
-    known |= {"refine", "segmenter"}
+    known |= {"refine", "segmenter", "min_explained"}
     unknown = sorted(set(options) - known)
     if unknown:
         raise BopsurgError(f"gdrnet: unknown option(s) {unknown}; known: {sorted(known)}")
@@ -252,6 +259,7 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     try:
         conf = float(options.get("conf", 0.05))
         max_per = int(options.get("max_per_object", 1))
+        min_explained = float(options.get("min_explained", FitSettings.min_explained))
     except ValueError as err:
         raise BopsurgError(f"gdrnet: bad option value ({err})") from err
     segmenter = Path(options.get("segmenter") or SHIPPED_SEGMENTER)
@@ -272,4 +280,5 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         max_per_object=max_per,
         decode=str(options.get("decode", "direct")),
         segmenter=None if refine == "none" else segmenter,
+        fit=FitSettings(min_explained=min_explained),
     )

@@ -141,6 +141,24 @@ def test_an_occluded_arc_does_not_pull_the_fit_off_the_true_pose(view_deg, hidde
     assert metrics.re(res.R[None], R[None])[0] < 3.5
 
 
+def test_a_mask_the_wire_cannot_explain_keeps_the_start_pose():
+    # a segmenter out of its domain: the needle's mask plus a long groove beside it
+    R, t = _pose(30.0, 20.0, (2.0, -3.0, 90.0))
+    R0, t0 = _perturbed(R, t)
+    clean = _evidence(R, t)
+    assert refine_pose(R0, t0, K, clean, ARC).improved  # the guard passes a clean mask
+    grid = np.zeros((160, 160), bool)
+    rows = ((clean.points - clean.origin) / clean.step).round().astype(int)
+    grid[rows[:, 1], rows[:, 0]] = True
+    grid[20:140, 150:156] = True  # the groove: as many pixels as the needle, no arc
+    groove = Evidence.from_mask(grid, clean.origin, clean.step, max_points=2000)
+    guarded = refine_pose(R0, t0, K, groove, ARC)
+    assert not guarded.improved
+    np.testing.assert_array_equal(guarded.t, t0)
+    off = refine_pose(R0, t0, K, groove, ARC, FitSettings(min_explained=0.0))
+    assert off.improved  # without the guard the fit takes what it can get
+
+
 def test_the_fit_is_deterministic():
     R, t = _pose(45.0, -30.0, (0.0, 0.0, 80.0))
     R0, t0 = _perturbed(R, t)
