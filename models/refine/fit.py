@@ -301,7 +301,7 @@ class _Problem:
     def explained(self, R: F64, t: F64, tol_px: float) -> float:
         """Share of the evidence pixels within ``tol_px`` of the projected wire's tube at the
         pose ``R`` (3, 3), ``t`` (3,) mm."""
-        X, rx, uv = self.project(R[None], t[None])
+        X, _, uv = self.project(R[None], t[None])
         rho = self.wire_mm * np.sqrt(self.fx * self.fy) / np.maximum(X[0, :, 2], 1e-6)
         a, ab = uv[0, :-1], np.diff(uv[0], axis=0)  # (M-1, 2) segments
         ap = self.ev.points[:, None, :] - a[None]  # (N, M-1, 2)
