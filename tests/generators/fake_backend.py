@@ -7,7 +7,7 @@ test replay, writing, visibility, dropping and resuming independently of any ren
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -83,6 +83,7 @@ class FakeRecording:
 
     start: float = 0.0
     end: float = 4.0
+    meta: dict = field(default_factory=dict)  # a Recording's facts (none: bopsurg's needle)
 
     def state_at(self, t: float) -> SceneState:
         x = -0.04 + 0.08 * (t - self.start) / (self.end - self.start)
