@@ -5,6 +5,8 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.bopsurg-installed
 DEMO_OUT ?= demo_out
+# pytest worker processes (pytest-xdist): every core; TEST_WORKERS=0 runs in one process
+TEST_WORKERS ?= auto
 
 .PHONY: demo test test-after-ray lint bench venv clean
 
@@ -26,7 +28,7 @@ lint: $(STAMP)
 	$(BIN)/mypy --strict bopsurg
 
 test: lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 # The suite again on the same machine, as a user who tried Ray would run it: with a HOME in
 # which Ray left ~/.ray/auth_token (its first local cluster writes one) and right after a
@@ -38,7 +40,7 @@ test-after-ray: $(STAMP)
 	HOME=$$home $(BIN)/bopsurg example --out $$home/ex --scenes 1 --images 3 >/dev/null && \
 	HOME=$$home $(BIN)/bopsurg -q eval $$home/ex/needle $$home/ex/bopsurgsim_needle-test.csv \
 		--out $$home/ev --no-progress --executor ray >/dev/null && \
-	HOME=$$home $(BIN)/python -m pytest -q -p no:cacheprovider
+	HOME=$$home $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS)
 
 bench: $(STAMP)
 	$(BIN)/python bench/bench_metrics.py
