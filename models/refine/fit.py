@@ -188,10 +188,10 @@ class FitSettings:
     # Out-of-domain guard: the fitted wire must explain this share of the evidence pixels
     # (within explained_tol_px of its tube), else the network's pose is kept. A segmenter
     # that marks a groove or an instrument edge as needle makes a fit that leaves much of
-    # its mask unexplained. On the seven AMBF frames (oracle boxes) 0.7 takes the median TE
-    # from 25.4 to 15.3 mm (the network's); on every 2nd held-out image of the model card's
-    # split it kept 12 of 250 fits and moved RE 5.55 -> 5.41 deg, TE/MSSD unchanged
-    # (bench_refine --stride 2 --fit min_explained=0|0.7). 0 turns the guard off.
+    # its mask unexplained. On the seven AMBF frames (bench_transfer, oracle boxes) 0.7 takes
+    # the median TE from 25.4 to 15.3 mm (the network's); on the model card's 478 held-out
+    # needles (bench_refine) it kept 22 of 499 fits: RE 4.92 deg either way, TE 2.98 -> 2.97
+    # mm, MSSD 3.41 -> 3.40 mm. 0 turns the guard off.
     min_explained: float = 0.7
     explained_tol_px: float = 1.5
 
@@ -240,6 +240,14 @@ def _exp_so3(w: F64) -> F64:
     a = np.where(small, 1.0, np.sin(th) / th)
     b = np.where(small, 0.5, (1.0 - np.cos(th)) / th**2)
     return np.eye(3) + a * Kx + b * (Kx @ Kx)
+
+
+def _on_segments(p: F64, a: F64, ab: F64) -> tuple[F64, F64]:
+    """Closest points of segments ``a + τ·ab`` (τ in [0, 1]) to points ``p`` (broadcast over
+    the leading axes): τ and ``p`` minus the closest point."""
+    ap = p - a
+    tau = np.clip((ap * ab).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12), 0.0, 1.0)
+    return tau, ap - tau[..., None] * ab
 
 
 def _bilinear(grid: F64, xy: F64) -> F64:
@@ -293,20 +301,23 @@ class _Problem:
     def wire_px(self, X: F64, rx: F64) -> tuple[F64, F64]:
         """Wire radius in image px at each model point (B, M) and its d/d(ω, δt) (B, M, 6)."""
         z = np.maximum(X[..., 2], 1e-6)
-        rho = self.wire * np.sqrt(self.fx * self.fy) / z
+        rho = self.radius_px(self.wire, z)
         dz = np.zeros((*X.shape[:-1], 6))  # dz/dω = (R·X)_y, −(R·X)_x, 0; dz/dδt = (0, 0, 1)
         dz[..., 0], dz[..., 1], dz[..., 5] = rx[..., 1], -rx[..., 0], 1.0
         return rho, -(rho / z)[..., None] * dz
+
+    def radius_px(self, wire_mm: F64, z: F64) -> F64:
+        """Image radius (px) of wire radii ``wire_mm`` at depths ``z`` mm."""
+        return wire_mm * np.sqrt(self.fx * self.fy) / z
 
     def explained(self, R: F64, t: F64, tol_px: float) -> float:
         """Share of the evidence pixels within ``tol_px`` of the projected wire's tube at the
         pose ``R`` (3, 3), ``t`` (3,) mm."""
         X, _, uv = self.project(R[None], t[None])
-        rho = self.wire_mm * np.sqrt(self.fx * self.fy) / np.maximum(X[0, :, 2], 1e-6)
+        rho = self.radius_px(self.wire_mm, np.maximum(X[0, :, 2], 1e-6))
         a, ab = uv[0, :-1], np.diff(uv[0], axis=0)  # (M-1, 2) segments
-        ap = self.ev.points[:, None, :] - a[None]  # (N, M-1, 2)
-        tau = np.clip((ap * ab).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12), 0.0, 1.0)
-        d = np.linalg.norm(ap - tau[..., None] * ab, axis=-1)
+        tau, diff = _on_segments(self.ev.points[:, None, :], a[None], ab[None])  # (N, M-1)
+        d = np.linalg.norm(diff, axis=-1)
         tube = (1 - tau) * rho[:-1] + tau * rho[1:]
         return float(((d - tube) <= tol_px).any(axis=1).mean())
 
@@ -329,9 +340,7 @@ class _Problem:
         bi = np.arange(len(R))[:, None, None]
         a, b = uv[bi, seg], uv[bi, seg + 1]  # (B, N, 2, 2)
         ab = b - a
-        ap = e[None, :, None, :] - a
-        tau = np.clip((ap * ab).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12), 0.0, 1.0)
-        diff = ap - tau[..., None] * ab
+        tau, diff = _on_segments(e[None, :, None, :], a, ab)
         d2 = (diff**2).sum(-1)
         pick = d2.argmin(-1)[..., None]  # (B, N, 1)
         d_line = np.sqrt(np.take_along_axis(d2, pick, -1)[..., 0])
