@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 from tqdm import tqdm
@@ -277,8 +278,6 @@ def init_weights(
         CheckpointError: Missing, corrupt or another kind of checkpoint.
         BopsurgError: Another architecture or object geometry than this run's.
     """
-    import numpy as np
-
     state, info = load_checkpoint(path, kind)
     where = f"recipe.init {path}"
     keys = {*config, *info["config"]} - training_only
@@ -291,7 +290,7 @@ def init_weights(
         )
     theirs = info.get("meta") or {}
     for k, mine in (meta or {}).items():
-        if k not in theirs or k in ("provenance", "epoch", "validation"):
+        if k not in theirs:
             continue
         a, b = theirs[k], mine
         same = (

@@ -13,7 +13,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from bopsurg.bop.dataset import BopDataset  # noqa: E402
-from bopsurg.bop.images import load_rgb, save_depth  # noqa: E402
+from bopsurg.bop.images import load_rgb  # noqa: E402
 from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
 from bopsurg.models.data import (  # noqa: E402
     MIB,
@@ -24,6 +24,7 @@ from bopsurg.models.data import (  # noqa: E402
     sample_nbytes,
 )
 from bopsurg.models.detector.letterbox import letterbox  # noqa: E402
+from tests.models.plane_depth import write_plane_depth  # noqa: E402
 
 INPUT_HW = (256, 320)
 
@@ -34,14 +35,7 @@ def split(tmp_path_factory) -> BopDataset:
     depth), so the pose head's object coordinates can be computed."""
     root = tmp_path_factory.mktemp("stream")
     ex = write_example_dataset(root, ExampleSpec(seed=2, scenes=3, images_per_scene=8))
-    ds = BopDataset(ex.root, ex.split)
-    for sid in ds.scene_ids:
-        scene = ds.scene(sid)
-        for im_id in scene.im_ids:
-            z = scene.gt[im_id][0].t[2] if scene.gt.get(im_id) else 100.0
-            path = scene.depth_path(im_id)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            save_depth(path, np.full((480, 640), z / 0.1))
+    write_plane_depth(BopDataset(ex.root, ex.split))
     return BopDataset(ex.root, ex.split)
 
 

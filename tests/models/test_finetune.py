@@ -6,20 +6,19 @@ from __future__ import annotations
 import json
 import shutil
 
-import numpy as np
 import pytest
 import yaml
 
 torch = pytest.importorskip("torch")
 
 from bopsurg.bop.dataset import BopDataset  # noqa: E402
-from bopsurg.bop.images import save_depth  # noqa: E402
 from bopsurg.cli.main import main  # noqa: E402
 from bopsurg.errors import DatasetError  # noqa: E402
 from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
 from bopsurg.models.checkpoint import load_checkpoint  # noqa: E402
 from bopsurg.models.data import SCENE_ID_STRIDE, SplitUnion, open_split  # noqa: E402
 from bopsurg.models.training import open_splits  # noqa: E402
+from tests.models.plane_depth import write_plane_depth  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -30,13 +29,7 @@ def dataset(tmp_path_factory):
     and a second split ``extra`` (a copy of ``test``, 3 scenes)."""
     root = tmp_path_factory.mktemp("ft")
     ex = write_example_dataset(root, ExampleSpec(seed=2, scenes=3, images_per_scene=3))
-    ds = BopDataset(ex.root, ex.split)
-    for scene in ds.iter_scenes():
-        for im_id in scene.im_ids:
-            z = scene.gt[im_id][0].t[2] if scene.gt.get(im_id) else 100.0
-            path = scene.depth_path(im_id)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            save_depth(path, np.full((480, 640), z / 0.1))
+    write_plane_depth(BopDataset(ex.root, ex.split))
     shutil.copytree(ex.root / "test", ex.root / "extra")
     return ex.root
 
@@ -137,3 +130,12 @@ def test_a_pose_head_fine_tunes_with_other_loss_weights_not_other_sizes(dataset,
     errors = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln]
     assert len(errors) == 1, errors
     assert "config differs from this run's (z_unit_mm;" in errors[0]
+    # a head trained for another object's normaliser would predict mislabelled coordinates
+    info_path = tmp_path / "a" / "pose.json"
+    info = json.loads(info_path.read_text())
+    info["meta"]["xyz_scale"] *= 2
+    info_path.write_text(json.dumps(info))
+    assert main([*args, "--out", str(tmp_path / "d"), "--init", start]) == 2
+    errors = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln]
+    assert len(errors) == 1, errors
+    assert "its meta 'xyz_scale' differs from this dataset's object" in errors[0]
