@@ -76,7 +76,7 @@ class SplitUnion(BopDataset):
         if twice:
             raise DatasetError(f"split {twice[0]!r} is named twice", path=root)
         super().__init__(root, names[0])
-        self.parts = [self] + [BopDataset(root, s) for s in names[1:]]
+        self.others = [BopDataset(root, s) for s in names[1:]]  # splits 1, 2, ...
         self.split = ",".join(names)
 
     def __repr__(self) -> str:
@@ -86,7 +86,7 @@ class SplitUnion(BopDataset):
     def scene_ids(self) -> list[int]:
         """Every split's scene ids, offset by ``k * SCENE_ID_STRIDE`` for the k-th split."""
         out = list_scene_ids(self.split_dir)
-        for k, part in enumerate(self.parts[1:], start=1):
+        for k, part in enumerate(self.others, start=1):
             out += [k * SCENE_ID_STRIDE + s for s in part.scene_ids]
         return out
 
@@ -95,9 +95,9 @@ class SplitUnion(BopDataset):
         k, sid = divmod(int(scene_id), SCENE_ID_STRIDE)
         if k == 0:
             return super().scene(sid)
-        if k >= len(self.parts):
+        if k > len(self.others):
             raise DatasetError(f"no scene {scene_id} in splits {self.split}", path=self.root)
-        return self.parts[k].scene(sid)
+        return self.others[k - 1].scene(sid)
 
 
 def open_split(root: str | Path, split: str) -> BopDataset:
