@@ -10,7 +10,7 @@ translation error per camera axis and the CPU time per 640x480 image (network, r
 2 threads.
 
     python bench/bench_refine.py DATASET --out bench/out/refine --segmenter SEG.pt \
-        [--oracle] [--stride 1] [--fit prior_weight=0.3]
+        [--oracle] [--stride 1] [--fit prior_weight=0.3] [--from-gt] [--option zoom=1]
 
 SEG.pt comes from ``python -m bopsurg.models.refine.train_seg TRAIN_DATASET --out RUN``.
 
@@ -109,11 +109,25 @@ def main() -> None:
     ap.add_argument("--oracle", action="store_true", help="also refine against GT masks")
     ap.add_argument("--stride", type=int, default=1, help="every n-th image (quick looks)")
     ap.add_argument(
+        "--from-gt",
+        action="store_true",
+        help="start the refinement stages from the GT pose instead of the network's; with "
+        "--fit prior_weight=0 this measures how far the evidence alone moves a perfect pose "
+        "(what the fit can pin down at best)",
+    )
+    ap.add_argument(
         "--fit",
         action="append",
         default=[],
         metavar="KEY=VALUE",
         help="override a FitSettings knob (numbers; repeatable), e.g. --fit prior_weight=0.05",
+    )
+    ap.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a gdrnet option of the network stage (repeatable), e.g. --option zoom=1",
     )
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
@@ -122,6 +136,7 @@ def main() -> None:
     ds = BopDataset(args.dataset, "test")
     opts = {"refine": "none", "device": "cpu"}
     opts |= {k: v for k, v in (("detector", args.detector), ("pose", args.pose)) if v}
+    opts |= dict(pair.partition("=")[::2] for pair in args.option)
     est = load_estimator("gdrnet", opts)
     settings = fit_settings(args.fit)
     refiner = None
@@ -153,14 +168,18 @@ def main() -> None:
         box = torch.cat([b[:, :2] - 0.5, b[:, 2:]], dim=1)  # as the estimator crops
         net_ms.append(1000 * (t1 - t0))
         poses = {"before": (pred.R, pred.t)}
+        R0, t0 = pred.R, pred.t
+        if args.from_gt:  # one needle per image: its first GT
+            g = scene.gt[i][0]
+            R0, t0 = np.repeat(g.R[None], len(pred), 0), np.repeat(g.t[None], len(pred), 0)
         if refiner is not None:
             t2 = time.perf_counter()
-            poses["after"] = refiner(image, K, box, pred.R, pred.t)[:2]
+            poses["after"] = refiner(image, K, box, R0, t0)[:2]
             ref_ms.append(1000 * (time.perf_counter() - t2))
         if args.oracle:
             oracle.evidence = gt_mask_evidence(load_mask(scene.mask_visib_path(i, 0)))
             t2 = time.perf_counter()
-            poses["oracle"] = oracle(image, K, box, pred.R, pred.t)[:2]
+            poses["oracle"] = oracle(image, K, box, R0, t0)[:2]
             oracle_ms.append(1000 * (time.perf_counter() - t2))
         for name, (Rn, tn) in poses.items():
             for k in range(len(pred)):

@@ -26,6 +26,7 @@ from bopsurg.models.pose import (  # noqa: E402
     gdr_losses,
     mask_probability,
     matrix_from_rot6d,
+    mean_pose,
     pnp_ransac_from_output,
     pose_from_output,
     ray_rotation,
@@ -155,6 +156,22 @@ def test_pose_from_output_recovers_gt_from_its_encodings():
     R_est, t_est = pose_from_output(out, K, centre, wh, side, cfg)
     assert torch.allclose(R_est, R, atol=1e-10)
     assert torch.allclose(t_est, t, atol=1e-9)
+
+
+def test_mean_pose_averages_translations_and_rotations():
+    R, t = _rotations(4, seed=5), _translations(4, seed=5)
+    # k copies of a pose: that pose
+    R_m, t_m = mean_pose(R[:, None].expand(4, 3, 3, 3), t[:, None].expand(4, 3, 3))
+    assert torch.allclose(R_m, R, atol=1e-12)
+    assert torch.allclose(t_m, t, atol=1e-12)
+    # the pose turned by ±5° about one axis: the pose itself, proper; t the plain mean
+    turn = torch.as_tensor(Rotation.from_rotvec([[0.0, 0.0, 0.0873]]).as_matrix(), dtype=D64)
+    pair = torch.stack([R @ turn, R @ turn.transpose(1, 2)], dim=1)
+    shift = torch.tensor([[[1.0, -2.0, 3.0]], [[-1.0, 2.0, 5.0]]], dtype=D64).transpose(0, 1)
+    R_m, t_m = mean_pose(pair, t[:, None] + shift)
+    assert torch.allclose(R_m, R, atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R_m), torch.ones(4, dtype=D64))
+    assert torch.allclose(t_m, t + torch.tensor([0.0, 0.0, 4.0], dtype=D64), atol=1e-12)
 
 
 # --- ROIs ----------------------------------------------------------------------------------------

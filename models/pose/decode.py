@@ -46,6 +46,23 @@ def pose_from_output(
     return allo_to_ego(matrix_from_rot6d(out["rot6d"]), t), t
 
 
+def mean_pose(R: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Average of k pose estimates of each of B objects: the mean translation and the chordal
+    mean rotation (the rotation nearest, in Frobenius norm, to the mean matrix).
+
+    Args:
+        R: (B, k, 3, 3) rotations.
+        t: (B, k, 3) translations, mm.
+
+    Returns:
+        R (B, 3, 3) and t (B, 3) mm.
+    """
+    U, _, Vh = torch.linalg.svd(R.mean(dim=1))
+    d = torch.sign(torch.linalg.det(U @ Vh))  # a proper rotation, not a reflection
+    U = torch.cat([U[..., :2], U[..., 2:] * d[:, None, None]], dim=-1)
+    return U @ Vh, t.mean(dim=1)
+
+
 def pnp_ransac_from_output(
     out: dict[str, torch.Tensor],
     K: torch.Tensor,

@@ -19,6 +19,7 @@ from bopsurg.bop.detections import gt_detections, save_detections
 from bopsurg.bop.images import load_rgb
 from bopsurg.bop.results import load_results
 from bopsurg.cli.main import main
+from bopsurg.errors import BopsurgError
 from bopsurg.estimation import load_estimator
 from bopsurg.needle import needle_mesh
 
@@ -27,6 +28,7 @@ pytest.importorskip("pybullet")
 
 from bopsurg.models.checkpoint import load_tensors  # noqa: E402
 from bopsurg.models.estimator import SHIPPED  # noqa: E402
+from bopsurg.models.pose import mean_pose  # noqa: E402
 
 SMALL = ["--width", "320", "--height", "240", "--K", "180,180,160,120", "--no-progress"]
 
@@ -179,6 +181,38 @@ def test_external_boxes_and_pnp_decoding(dataset, trained, tmp_path, capsys):
     est = load_results(out)
     assert set(zip(est.scene_id.tolist(), est.im_id.tolist(), strict=False)) <= set(boxes)
     assert len(est) > 0
+
+
+def test_zoomed_decoding_averages_the_poses_of_its_crops(dataset, trained):
+    """``zoom``: one batch of crops of several sides gives the mean of the poses that each
+    side alone gives (per box, in the boxes' order); bad values are one-line errors."""
+    det, pose = trained
+    ds = BopDataset(dataset, "test")
+    scene = ds.scene(ds.scene_ids[0])
+    rgb, K = load_rgb(scene.rgb_path(scene.im_ids[0])), scene.camera[scene.im_ids[0]].K
+    boxes = gt_detections(ds)[(ds.scene_ids[0], scene.im_ids[0])]
+    boxes = boxes.subset(np.array([0, 0]))  # the same object twice: two ROIs in one batch
+    boxes.bbox[1] += np.array([3.0, -2.0, 4.0, 6.0])
+
+    def run(zoom):
+        opts = {"detector": str(det), "pose": str(pose), "refine": "none", "zoom": zoom}
+        est = load_estimator("gdrnet", opts | {"device": "cpu", "max_per_object": "2"})
+        return est.predict(rgb, K, boxes=boxes)
+
+    both = run("0.8,1.2")
+    a, b = run("0.8"), run("1.2")
+    R_m, t_m = (
+        x.numpy()
+        for x in mean_pose(
+            torch.as_tensor(np.stack([a.R, b.R], 1)), torch.as_tensor(np.stack([a.t, b.t], 1))
+        )
+    )
+    assert np.allclose(both.t, t_m, atol=1e-3)  # float32 network, batched differently
+    assert np.allclose(both.R, R_m, atol=1e-4)
+    assert not np.allclose(a.t, b.t)  # the two sides do see different crops
+    for bad in ("0", "1,x", "-1"):
+        with pytest.raises(BopsurgError, match="zoom"):
+            run(bad)
 
 
 @pytest.mark.parametrize("damage", ["truncate", "kind", "no_json", "other_config"])
