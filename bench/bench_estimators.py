@@ -411,7 +411,7 @@ def model_card(r: dict) -> str:
         "```",
         "",
         *detector_provenance(r),
-        f"Data: {r['train_images']} training frames (640x480, every 10th scene held out for "
+        f"Data: {r['train_images']} training frames (640x480, one scene in 10 held out for "
         f"validation) and {r['test_images']} test frames from other episodes and other "
         f"viewpoints. One frame every {a['period']:g} s of each replay (many viewpoints rather",
         "than many frames per viewpoint), needle visib_fract >= 0.1,",

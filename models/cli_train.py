@@ -28,8 +28,8 @@ Train one of the two models of the built-in 'gdrnet' estimator on a BOP dataset 
 Writes into --out: MODEL.pt + MODEL.json (the exported EMA weights, float16, and their
 config, loaded with weights_only=True), log.jsonl (losses and validation per epoch),
 train_state.pt/.json (to resume). Rerun the same command after an interruption: it
-resumes after the last finished epoch and ends with the same weights. Validation: every
-10th scene of --split is held out (or --val-split). Presets: detector cpu (default; width
+resumes after the last finished epoch and ends with the same weights. Validation: one
+scene in 10 of --split, drawn with a fixed seed, is held out (or --val-split). Presets: detector cpu (default; width
 0.25, depth 0.33, input 320x256 = 640x480 letterboxed at 1/2), tiny, s, test; pose cpu
 (ResNet-18 layout at half width, ROI 128 -> 32x32 maps, 32 regions), paper (ResNet-34
 layout, ROI 256, 64 regions), test. Seeded: the same command gives the same weights on the
@@ -101,7 +101,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(default: train)",
     )
     p.add_argument(
-        "--val-split", default=None, help="validation split (default: every 10th scene held out)"
+        "--val-split",
+        default=None,
+        help="validation split (default: one scene in 10 held out, a seeded draw)",
     )
     p.add_argument("--out", metavar="DIR", help="run folder (created / resumed); required")
     p.add_argument(

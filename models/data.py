@@ -21,7 +21,7 @@ An optional LRU cache (:class:`LruCache`) keeps decoded samples within a memory 
 (``cache_mb`` MiB per set and per process, by the samples' actual tensor bytes), so a set
 that fits is decoded once and then served from memory, while a larger one still streams.
 
-Whole scenes are held out for validation (every ``val_every``-th scene, deterministic), so
+Whole scenes are held out for validation (one in ``val_every``, drawn with a fixed seed), so
 validation frames never share a trajectory replay with training frames.
 """
 
@@ -108,22 +108,35 @@ def open_split(root: str | Path, split: str) -> BopDataset:
     return BopDataset(root, split)
 
 
+#: Seed of the held-out scene draw of :func:`split_scenes`. A stride through the scene ids
+#: (every 10th, as before) aliased with the generator's cycle of the paper's 20 ECM base
+#: poses (replay i starts from pose i mod 20): it held out poses 9 and 19 only, the two closest
+#: (needle at 17-40 mm, median 30, against 62 mm for the other scenes), so no model trained on
+#: a close-up and validation saw nothing else.
+VAL_SEED = 0
+
+
 def split_scenes(
     dataset: BopDataset, val_every: int = 10, val: BopDataset | None = None
 ) -> tuple[list[int], list[int]]:
     """Train and validation scene ids of ``dataset``.
 
-    With ``val`` (a separate split), all of ``dataset`` trains. Otherwise every
-    ``val_every``-th scene (in id order, starting with the ``val_every``-th) is held out; with
-    fewer than ``val_every`` scenes the last one is, and a single scene is used for both.
+    With ``val`` (a separate split), all of ``dataset`` trains. Otherwise ``len // val_every``
+    scenes drawn with the fixed seed :data:`VAL_SEED` are held out (deterministic, and not a
+    stride through the ids: see there); with fewer than ``val_every`` scenes the last one is,
+    and a single scene is used for both.
     """
     ids = dataset.scene_ids
     if not ids:
         raise DatasetError("the split has no scenes", path=dataset.split_dir)
     if val is not None or val_every <= 0:
         return ids, []
-    held = ids[val_every - 1 :: val_every] or ids[-1:]
-    train = [s for s in ids if s not in held] or ids
+    if len(ids) < val_every:
+        held = ids[-1:]
+    else:
+        draw = np.random.default_rng(VAL_SEED).choice(len(ids), len(ids) // val_every, False)
+        held = [ids[k] for k in sorted(draw)]
+    train = [s for s in ids if s not in set(held)] or ids
     return train, held
 
 

@@ -115,7 +115,7 @@ def train_detector(
         dataset: BOP dataset root.
         out: Run folder (created; resumed when it holds a run with the same settings).
         split: Training split.
-        val_split: Validation split; None = hold out every 10th scene of ``split``.
+        val_split: Validation split; None = hold out one scene in 10 of ``split`` (seeded).
         preset: :meth:`DetectorConfig.preset` name (``cpu``, ``tiny``, ``s``, ``test``).
         recipe: Hyper-parameters (default :class:`DetectorRecipe`).
         seed: Seed of every random choice.

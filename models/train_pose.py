@@ -245,7 +245,7 @@ def train_pose(
         dataset: BOP dataset root.
         out: Run folder (created; resumed when it holds a run with the same settings).
         split: Training split.
-        val_split: Validation split; None = hold out every 10th scene of ``split``.
+        val_split: Validation split; None = hold out one scene in 10 of ``split`` (seeded).
         obj_id: Object to train for; None = the dataset's first object.
         preset: :meth:`PoseConfig.preset` name (``cpu``, ``paper``, ``test``).
         recipe: Hyper-parameters (default :class:`PoseRecipe`).

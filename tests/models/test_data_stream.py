@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import gc
 import tracemalloc
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -22,6 +24,7 @@ from bopsurg.models.data import (  # noqa: E402
     load_detection_set,
     load_pose_set,
     sample_nbytes,
+    split_scenes,
 )
 from bopsurg.models.detector.letterbox import letterbox  # noqa: E402
 from tests.models.plane_depth import write_plane_depth  # noqa: E402
@@ -255,3 +258,18 @@ def test_a_default_budget_caches_the_whole_small_set(split):
     assert pose.cache.misses == len(pose)  # every sample decoded once
     assert pose.cache.nbytes == len(pose) * (3 + 1 + 6) * 64 * 64
     assert pose.head(2).cache.max_bytes == 4096 * MIB
+
+
+def test_held_out_scenes_do_not_alias_with_the_viewpoint_cycle():
+    """The generator starts replay i from the paper's ECM base pose i mod 20: the held-out
+    scenes must cover that cycle (a stride of 10 held out poses 9 and 19 only, the two closest
+    viewpoints), be one in 10, be the same on every call and train on nothing they hold."""
+    ds = SimpleNamespace(scene_ids=list(range(1, 401)), split_dir=Path("train"))
+    train, held = split_scenes(ds)  # type: ignore[arg-type]
+    assert len(held) == 40
+    assert set(train).isdisjoint(held)
+    assert sorted(train + held) == ds.scene_ids
+    assert len({(s - 1) % 20 for s in held}) >= 15
+    assert split_scenes(ds) == (train, held)
+    few = SimpleNamespace(scene_ids=[3, 7], split_dir=Path("train"))
+    assert split_scenes(few) == ([3], [7])  # type: ignore[arg-type]
