@@ -308,7 +308,7 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     except ValueError as err:
         raise BopsurgError(f"gdrnet: bad option value ({err})") from err
     try:
-        zoom = tuple(float(z) for z in str(options.get("zoom", "")).split(",") if z.strip())
+        zoom = tuple(map(float, str(options["zoom"]).split(","))) if "zoom" in options else ()
     except ValueError as err:
         raise BopsurgError(f"gdrnet: zoom must be numbers, e.g. zoom=0.9,1,1.1 ({err})") from err
     segmenter = Path(options.get("segmenter") or SHIPPED_SEGMENTER)
@@ -330,5 +330,5 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         decode=str(options.get("decode", "direct")),
         segmenter=None if refine == "none" else segmenter,
         fit=FitSettings(min_explained=min_explained),
-        zoom=zoom if "zoom" in options else ZOOM_SCALES,
+        zoom=zoom or ZOOM_SCALES,
     )

@@ -223,7 +223,8 @@ class Splits:
 def open_splits(dataset: str | Path, split: str, val_split: str | None) -> Splits:
     """``split`` of ``dataset`` for training; validation on all of ``val_split``, or, when
     None, on one scene in 10 of ``split`` held out (a seeded draw of whole scenes: no shared
-    trajectories). Either may name several splits, comma-separated (:class:`~bopsurg.models.data.SplitUnion`)."""
+    trajectories). Either may name several splits, comma-separated
+    (:class:`~bopsurg.models.data.SplitUnion`)."""
     ds = open_split(dataset, split)
     val_ds = open_split(dataset, val_split) if val_split else None
     train_ids, val_ids = split_scenes(ds, 10, val_ds)
