@@ -31,10 +31,9 @@ train_state.pt/.json (to resume). Rerun the same command after an interruption: 
 resumes after the last finished epoch and ends with the same weights. Validation: one
 scene in 10 of --split, drawn with a fixed seed, is held out (or --val-split). Presets:
 detector cpu (default; width 0.25, depth 0.33, input 320x256 = 640x480 letterboxed at 1/2),
-tiny, s, test; pose cpu
-(ResNet-18 layout at half width, ROI 128 -> 32x32 maps, 32 regions), paper (ResNet-34
-layout, ROI 256, 64 regions), test. Seeded: the same command gives the same weights on the
-same machine and device, whatever --workers.
+tiny, s, test; pose cpu (ResNet-18 layout at half width, ROI 128 -> 32x32 maps, 32
+regions), paper (ResNet-34 layout, ROI 256, 64 regions), test. Seeded: the same command
+gives the same weights on the same machine and device, whatever --workers.
 
 Images are read from disk and decoded when first needed; each set (training, validation)
 keeps its decoded samples in memory up to loader.cache_mb MiB (default 4096, in each
