@@ -136,7 +136,8 @@ def split_scenes(
     else:
         draw = np.random.default_rng(VAL_SEED).choice(len(ids), len(ids) // val_every, False)
         held = [ids[k] for k in sorted(draw)]
-    train = [s for s in ids if s not in set(held)] or ids
+    held_ids = set(held)
+    train = [s for s in ids if s not in held_ids] or ids
     return train, held
 
 
