@@ -27,7 +27,12 @@ from bopsurg.models.checkpoint import load_checkpoint, load_weights
 from bopsurg.models.detector import DetectorConfig, YoloxDetector
 from bopsurg.models.detector.letterbox import letterbox
 from bopsurg.models.pose.config import PoseConfig
-from bopsurg.models.pose.decode import mean_pose, pnp_ransac_from_output, pose_from_output
+from bopsurg.models.pose.decode import (
+    mean_pose,
+    nearest_rotation,
+    pnp_ransac_from_output,
+    pose_from_output,
+)
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser
@@ -224,15 +229,16 @@ class GdrNetEstimator:
                 out = self._run_head(head, image, centre, side)
                 R, t, ok = pnp_ransac_from_output(out, K_b, centre, side, head.normaliser, cfg)
                 R_d, t_d = pose_from_output(out, K_b, centre, box_xywh[:, 2:], side, cfg)
-                R = np.where(ok[:, None, None], R, R_d.double().cpu().numpy())
+                # float64 rotations (the network's float32 Gram-Schmidt is off by ~1e-7)
+                R_d = nearest_rotation(R_d.double()).cpu().numpy()
+                R = np.where(ok[:, None, None], R, R_d)
                 t = np.where(ok[:, None], t, t_d.double().cpu().numpy())
                 self.pnp_solved += int(ok.sum())
                 self.pnp_fallback += int((~ok).sum())
                 if not ok.all():
                     log.debug("pnp: %d of %d ROIs fell back to direct decoding", (~ok).sum(), n)
-            else:
+            else:  # the mean pose is a float64 rotation already
                 R, t = self._zoomed_direct(head, image, K_b, centre, side, box_xywh[:, 2:])
-            R, t = _orthonormal(R), t
             if self.refiner is not None and int(obj) == NEEDLE_OBJ_ID:
                 R, t, _ = self.refiner(image, np.asarray(K, float), box_xywh, R, t)
             R_out[rows], t_out[rows] = R, t
@@ -270,14 +276,6 @@ class GdrNetEstimator:
         )  # fmt: skip
         R_m, t_m = mean_pose(R.double().reshape(n, k, 3, 3), t.double().reshape(n, k, 3))
         return R_m.cpu().numpy(), t_m.cpu().numpy()
-
-
-def _orthonormal(R: np.ndarray) -> np.ndarray:
-    """Nearest rotations in float64 (the network's float32 Gram-Schmidt is off by ~1e-7)."""
-    U, _, Vt = np.linalg.svd(R)
-    d = np.sign(np.linalg.det(U @ Vt))
-    U[:, :, 2] *= d[:, None]
-    return U @ Vt
 
 
 def create(options: Mapping[str, Any]) -> GdrNetEstimator:

@@ -27,6 +27,7 @@ from bopsurg.models.pose import (  # noqa: E402
     mask_probability,
     matrix_from_rot6d,
     mean_pose,
+    nearest_rotation,
     pnp_ransac_from_output,
     pose_from_output,
     ray_rotation,
@@ -172,6 +173,16 @@ def test_mean_pose_averages_translations_and_rotations():
     assert torch.allclose(R_m, R, atol=1e-12)
     assert torch.allclose(torch.linalg.det(R_m), torch.ones(4, dtype=D64))
     assert torch.allclose(t_m, t + torch.tensor([0.0, 0.0, 4.0], dtype=D64), atol=1e-12)
+
+
+def test_nearest_rotation_is_proper_and_keeps_rotations():
+    R = _rotations(3, seed=6)
+    assert torch.allclose(nearest_rotation(R + 1e-7), R, atol=1e-6)
+    # a reflection's nearest proper rotation: flip the axis of its smallest singular value
+    mirror = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=D64))[None] @ R
+    near = nearest_rotation(mirror * torch.tensor([1.0, 2.0, 3.0], dtype=D64)[:, None])
+    assert torch.allclose(torch.linalg.det(near), torch.ones(3, dtype=D64))
+    assert torch.allclose(near @ near.transpose(1, 2), torch.eye(3, dtype=D64).expand(3, 3, 3))
 
 
 # --- ROIs ----------------------------------------------------------------------------------------

@@ -10,7 +10,12 @@ outputs). Units follow BOP: mm, px, ``x_cam = R x_model + t``.
 from __future__ import annotations
 
 from bopsurg.models.pose.config import PoseConfig
-from bopsurg.models.pose.decode import mean_pose, pnp_ransac_from_output, pose_from_output
+from bopsurg.models.pose.decode import (
+    mean_pose,
+    nearest_rotation,
+    pnp_ransac_from_output,
+    pose_from_output,
+)
 from bopsurg.models.pose.encodings import (
     SiteRoi,
     allo_to_ego,
@@ -46,6 +51,7 @@ __all__ = [
     "mask_probability",
     "matrix_from_rot6d",
     "mean_pose",
+    "nearest_rotation",
     "pnp_ransac_from_output",
     "point_matching",
     "pose_from_output",

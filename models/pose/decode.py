@@ -46,9 +46,18 @@ def pose_from_output(
     return allo_to_ego(matrix_from_rot6d(out["rot6d"]), t), t
 
 
+def nearest_rotation(m: torch.Tensor) -> torch.Tensor:
+    """The proper rotations nearest (Frobenius norm) to (B, 3, 3) matrices ``m``: ``U Vᵀ`` of
+    their SVD, the last column of U flipped where that would be a reflection."""
+    U, _, Vh = torch.linalg.svd(m)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    U = torch.cat([U[..., :2], U[..., 2:] * d[:, None, None]], dim=-1)
+    return U @ Vh
+
+
 def mean_pose(R: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Average of k pose estimates of each of B objects: the mean translation and the chordal
-    mean rotation (the rotation nearest, in Frobenius norm, to the mean matrix).
+    mean rotation (:func:`nearest_rotation` to the mean matrix).
 
     Args:
         R: (B, k, 3, 3) rotations.
@@ -57,10 +66,7 @@ def mean_pose(R: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
     Returns:
         R (B, 3, 3) and t (B, 3) mm.
     """
-    U, _, Vh = torch.linalg.svd(R.mean(dim=1))
-    d = torch.sign(torch.linalg.det(U @ Vh))  # a proper rotation, not a reflection
-    U = torch.cat([U[..., :2], U[..., 2:] * d[:, None, None]], dim=-1)
-    return U @ Vh, t.mean(dim=1)
+    return nearest_rotation(R.mean(dim=1)), t.mean(dim=1)
 
 
 def pnp_ransac_from_output(
