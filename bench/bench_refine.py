@@ -71,15 +71,18 @@ def fit_settings(pairs: list[str]) -> FitSettings:
     return dataclasses.replace(base, **kw)
 
 
-def axis_medians(ds: BopDataset, est: PoseEstimates, min_visib: float) -> list[float]:
+def axis_medians(ds: BopDataset, est: PoseEstimates, min_visib: float) -> tuple[list[float], float]:
     """Median |dx|, |dy|, |dz| (camera frame, mm) against the first GT of each image with
-    visib_fract >= min_visib (one needle per image)."""
-    d = []
+    visib_fract >= min_visib (one needle per image), and the median signed relative depth
+    error (t_z,est − t_z,gt) / t_z,gt: a bias of the depth, not only its spread."""
+    d, rel = [], []
     for s, i, t in zip(est.scene_id, est.im_id, est.t, strict=True):
         scene = ds.scene(int(s))
         if scene.gt_info[int(i)][0].visib_fract >= min_visib:
-            d.append(np.abs(t - scene.gt[int(i)][0].t))
-    return [float(v) for v in np.median(np.array(d), axis=0)]
+            t_gt = scene.gt[int(i)][0].t
+            d.append(np.abs(t - t_gt))
+            rel.append((t[2] - t_gt[2]) / t_gt[2])
+    return [float(v) for v in np.median(np.array(d), axis=0)], float(np.median(rel))
 
 
 def evaluate(data: Path, results: Path, out: Path) -> tuple[dict, dict]:
@@ -202,10 +205,13 @@ def main() -> None:
         path = args.out / f"results_{name}.csv"
         save_results(path, est_n)
         summary, scores = evaluate(args.dataset, path, args.out / f"eval_{name}")
-        axes = axis_medians(ds, est_n, summary["min_visib"])
-        report[name] = {"summary": summary, "scores": scores, "axes_mm": axes}
+        axes, depth_bias = axis_medians(ds, est_n, summary["min_visib"])
+        report[name] = {
+            "summary": summary, "scores": scores, "axes_mm": axes, "depth_bias": depth_bias
+        }  # fmt: skip
         print(f"\n== {name} ==\n{format_table(summary, scores)}")
         print("median |dx|, |dy|, |dz| (camera frame, mm): " + ", ".join(f"{v:.2f}" for v in axes))
+        print(f"median signed depth error (t_z est - gt) / t_z gt: {100 * depth_bias:+.1f} %")
         tb = summary["table"]
         table.append(
             f"| {name} | {tb['re']['median']:.2f} | {tb['te']['median']:.2f} | "

@@ -51,11 +51,13 @@ REFINE_MODES = ("fit", "none")
 #: Test-time zoom: the direct decoding averages the poses of crops whose sides are these
 #: multiples of the test-time DZI crop (1.5 x the box: 1.25, 1.5 and 1.75 x the box). The
 #: head's SITE depth is not scale-invariant: on the model card's 478 held-out needles the
-#: first shipped head's depth was biased by +3 % at 1.2 x the box and -2.7 % at 1.8 x (every
-#: 2nd image), nearly linear in the crop side, so a symmetric set of crops cancels that bias
-#: and averages the noise. All 478, detector boxes, the shipped head and segmenter: network
-#: TE 3.12 -> 2.92 mm, MSSD 3.77 -> 3.45 mm; refined TE 2.90 -> 2.67 mm, MSSD 3.34 -> 3.05
-#: mm (five crops from 1.2 to 1.8 x did no better on a scratch subset). ``zoom=1`` is one crop.
+#: median signed depth error of the first shipped head is +3.0 / +0.7 / -3.1 % at crops of
+#: 1.2 / 1.5 / 1.8 x the box (the shipped one: +1.8 / +0.7 / -1.5 %), nearly linear in the
+#: crop side, so a symmetric set of crops cancels that bias and averages the noise
+#: (``bench/bench_refine.py --segmenter none --option zoom=0.8`` prints it). Same needles,
+#: the shipped head and segmenter, one crop -> these three: network TE 3.12 -> 2.92 mm, MSSD
+#: 3.77 -> 3.45 mm; refined TE 2.90 -> 2.67 mm, MSSD 3.34 -> 3.05 mm (five crops from 1.2 to
+#: 1.8 x did no better on a scratch subset). ``zoom=1`` is one crop.
 ZOOM_SCALES = (5 / 6, 1.0, 7 / 6)
 #: The shipped needle segmenter (see MODEL_CARD.md); the refinement is on by default when
 #: this file exists, ``refine=none`` turns it off.
