@@ -52,10 +52,10 @@ REFINE_MODES = ("fit", "none")
 #: multiples of the test-time DZI crop (1.5 x the box: 1.25, 1.5 and 1.75 x the box). The
 #: head's SITE depth is not scale-invariant: on the model card's 478 held-out needles the
 #: median signed depth error of the first shipped head is +3.0 / +0.7 / -3.1 % at crops of
-#: 1.2 / 1.5 / 1.8 x the box (the shipped one: +1.8 / +0.7 / -1.5 %), nearly linear in the
+#: 1.2 / 1.5 / 1.8 x the box (commit e38f2a1's: +1.8 / +0.7 / -1.5 %), nearly linear in the
 #: crop side, so a symmetric set of crops cancels that bias and averages the noise
 #: (``bench/bench_refine.py --segmenter none --option zoom=0.8`` prints it). Same needles,
-#: the shipped head and segmenter, one crop -> these three: network TE 3.12 -> 2.92 mm, MSSD
+#: e38f2a1's head and the segmenter, one crop -> these three: network TE 3.12 -> 2.92 mm, MSSD
 #: 3.77 -> 3.45 mm; refined TE 2.90 -> 2.67 mm, MSSD 3.34 -> 3.05 mm (five crops from 1.2 to
 #: 1.8 x did no better on a scratch subset). ``zoom=1`` is one crop.
 ZOOM_SCALES = (5 / 6, 1.0, 7 / 6)
