@@ -3,11 +3,11 @@
 One pass over the split runs the ``gdrnet`` estimator without refinement (the "before"
 poses: detector + pose head, direct decoding), then the refinement stage on the same image,
 boxes and poses (the "after" poses; the estimator's ``refine=fit`` runs exactly this stage;
-skipped with ``--segmenter none``), and optionally the stage again with the GT visible masks
-as evidence (``--oracle``: the fit's ceiling). Each set is written as a BOP results CSV and
-scored by ``bopsurg eval``; it prints the paper's table, AR_MSSD / AR_MSPD, the median
-translation error per camera axis and the CPU time per 640x480 image (network, refinement),
-2 threads.
+skipped with ``--segmenter none``), and optionally the stage again with the GT masks as
+evidence (``--oracle``: the fit's ceiling; the full or the visible masks, as ``--mask``
+says). Each set is written as a BOP results CSV and scored by ``bopsurg eval``; it prints
+the paper's table, AR_MSSD / AR_MSPD, the median translation error per camera axis and the
+CPU time per 640x480 image (network, refinement), 2 threads.
 
     python bench/bench_refine.py DATASET --out bench/out/refine --segmenter SEG.pt \
         [--oracle] [--stride 1] [--fit prior_weight=0.3] [--from-gt] [--option zoom=1]
@@ -45,7 +45,7 @@ ORACLE_GRID = 192
 
 
 def gt_mask_evidence(mask: np.ndarray):
-    """An evidence source that crops a GT visible mask like the segmenter crops the image."""
+    """An evidence source that crops a GT mask like the segmenter crops the image."""
     m = torch.from_numpy(mask.astype(np.float32))[None, None]
 
     def evidence(image, centre, side, size):
@@ -109,6 +109,13 @@ def main() -> None:
         default=str(SHIPPED / "needle_seg.pt"),
         help="segmenter checkpoint, or 'none' (then only 'before' and '--oracle' are scored)",
     )
+    ap.add_argument(
+        "--mask",
+        choices=["full", "visible"],
+        default=None,
+        help="the segmenter's mask the fit uses, and the GT mask of --oracle (default: full "
+        "when the segmenter predicts it, else visible)",
+    )
     ap.add_argument("--oracle", action="store_true", help="also refine against GT masks")
     ap.add_argument("--stride", type=int, default=1, help="every n-th image (quick looks)")
     ap.add_argument(
@@ -144,8 +151,9 @@ def main() -> None:
     settings = fit_settings(args.fit)
     refiner = None
     if args.segmenter != "none":
-        seg = Segmenter(args.segmenter, torch.device("cpu"))
+        seg = Segmenter(args.segmenter, torch.device("cpu"), args.mask)
         refiner = NeedleRefiner(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings)
+    oracle_mask = args.mask or (seg.mask if refiner is not None else "visible")
     info = ds.models_info[1]["keypoints"]
     arc = ArcModel.from_keypoints(info["tail"], info["tip"])
     oracle = NeedleRefiner(
@@ -180,7 +188,8 @@ def main() -> None:
             poses["after"] = refiner(image, K, box, R0, t0)[:2]
             ref_ms.append(1000 * (time.perf_counter() - t2))
         if args.oracle:
-            oracle.evidence = gt_mask_evidence(load_mask(scene.mask_visib_path(i, 0)))
+            gt_path = scene.mask_path if oracle_mask == "full" else scene.mask_visib_path
+            oracle.evidence = gt_mask_evidence(load_mask(gt_path(i, 0)))
             t2 = time.perf_counter()
             poses["oracle"] = oracle(image, K, box, R0, t0)[:2]
             oracle_ms.append(1000 * (time.perf_counter() - t2))
@@ -189,6 +198,7 @@ def main() -> None:
                 rows[name].append((s, i, int(pred.obj_id[k]), float(pred.score[k]), Rn[k], tn[k]))
 
     report: dict = {"images": len(keys), "stride": args.stride, "fit": vars(settings)}
+    report["mask"] = oracle_mask
     table = []
     for name in names:
         r = rows[name]

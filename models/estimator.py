@@ -120,6 +120,8 @@ class GdrNetEstimator:
         decode: ``direct`` (rotation + SITE heads) or ``pnp`` (PnP-RANSAC on the coordinates;
             a ROI where PnP finds no solution keeps the direct pose, see ``pnp_fallback``).
         segmenter: Needle-segmenter checkpoint for the refinement, or None for none.
+        mask: The segmenter's mask the fit uses (``full``, ``visible``; None: ``full`` when
+            the segmenter predicts it).
         fit: The refinement's fit settings (default :class:`FitSettings`).
         zoom: Crop sides of the direct decoding, as multiples of the test-time DZI crop
             (default :data:`ZOOM_SCALES`); the poses of the crops are averaged.
@@ -135,6 +137,7 @@ class GdrNetEstimator:
         max_per_object: int = 1,
         decode: str = "direct",
         segmenter: str | Path | None = None,
+        mask: str | None = None,
         fit: FitSettings | None = None,
         zoom: tuple[float, ...] = ZOOM_SCALES,
     ) -> None:
@@ -159,7 +162,7 @@ class GdrNetEstimator:
         self.refiner = (
             None
             if segmenter is None
-            else NeedleRefiner.from_checkpoint(segmenter, self.device, fit)
+            else NeedleRefiner.from_checkpoint(segmenter, self.device, fit, mask)
         )
 
     @torch.inference_mode()
@@ -288,13 +291,15 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     ``decode`` (``direct`` or ``pnp``), ``no_detector`` (``1``: external boxes only),
     ``refine`` (``fit``: fit the needle arc to its full-resolution mask; ``none``: the network's
     pose as it is; default ``fit`` when a segmenter is shipped, else ``none``),
-    ``segmenter`` (its checkpoint; default: the shipped one) and ``min_explained`` (the fit's
-    out-of-domain guard: the share of the mask its wire must explain, else the network's pose
-    is kept; default :attr:`FitSettings.min_explained`), ``zoom`` (comma-separated crop-side
+    ``segmenter`` (its checkpoint; default: the shipped one), ``mask`` (the segmenter's mask the
+    fit uses: ``full``, the amodal one, by default when it predicts one, or ``visible``),
+    ``min_explained`` (the fit's out-of-domain guard: the share of the mask its wire must
+    explain, else the network's pose is kept; default :attr:`FitSettings.min_explained`) and
+    ``zoom`` (comma-separated crop-side
     multiples whose direct poses are averaged; default :data:`ZOOM_SCALES`, ``1`` for one crop).
     """
     known = {"detector", "pose", "device", "conf", "max_per_object", "decode", "no_detector"}
-    known |= {"refine", "segmenter", "min_explained", "zoom"}
+    known |= {"refine", "segmenter", "mask", "min_explained", "zoom"}
     unknown = sorted(set(options) - known)
     if unknown:
         raise BopsurgError(f"gdrnet: unknown option(s) {unknown}; known: {sorted(known)}")
@@ -330,6 +335,7 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         max_per_object=max_per,
         decode=str(options.get("decode", "direct")),
         segmenter=None if refine == "none" else segmenter,
+        mask=str(options["mask"]) if "mask" in options else None,
         fit=FitSettings(min_explained=min_explained),
         zoom=zoom or ZOOM_SCALES,
     )

@@ -1,9 +1,9 @@
 """The refinement stage of the ``gdrnet`` estimator: evidence at full resolution, then the fit.
 
-Per ROI: the segmenter (:mod:`.seghead`) predicts the needle's visible mask on a square grid
-of about one image px around the detection, and :func:`.fit.refine_pose` fits the exact arc
-to it, starting from the pose head's estimate; a fit that does not lower its own cost keeps
-the pose head's pose.
+Per ROI: the segmenter (:mod:`.seghead`) predicts the needle's mask on a square grid of about
+one image px around the detection (its full, amodal mask when it predicts one, else the
+visible mask), and :func:`.fit.refine_pose` fits the exact arc to it, starting from the pose
+head's estimate; a fit that does not lower its own cost keeps the pose head's pose.
 """
 
 from __future__ import annotations
@@ -24,15 +24,26 @@ from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
 #: Foreground threshold on the segmenter's probability.
 MASK_THRESHOLD = 0.5
 
+#: Which of a segmenter's masks is the fit's evidence: ``full`` (amodal; the default when the
+#: segmenter predicts it) or ``visible``.
+MASK_KINDS = ("full", "visible")
+
 #: Evidence source: (image (1, 3, H, W) float in [0, 1], centres (n, 2) px, sides (n,) px,
 #: grid side S) → (n, S, S) foreground probabilities on the ROI grids.
 EvidenceFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int], np.ndarray]
 
 
 class Segmenter:
-    """A loaded segmenter checkpoint (kind ``needle_seg``) and the arc it was trained for."""
+    """A loaded segmenter checkpoint (kind ``needle_seg``) and the arc it was trained for.
 
-    def __init__(self, path: str | Path, device: torch.device) -> None:
+    Args:
+        path: The checkpoint.
+        device: Where it runs.
+        mask: The mask it returns (:data:`MASK_KINDS`); None: ``full`` when the checkpoint
+            predicts it, else ``visible``.
+    """
+
+    def __init__(self, path: str | Path, device: torch.device, mask: str | None = None) -> None:
         state, info = load_checkpoint(path, "needle_seg")
         try:
             self.cfg = SegConfig.from_dict(info["config"])
@@ -42,6 +53,14 @@ class Segmenter:
             raise BopsurgError(
                 f"{Path(path).with_suffix('.json')}: bad segmenter config ({err})"
             ) from err
+        if mask is None:
+            mask = "full" if self.cfg.amodal else "visible"
+        if mask not in MASK_KINDS:
+            raise BopsurgError(f"segmenter mask must be one of {MASK_KINDS}, got {mask!r}")
+        if mask == "full" and not self.cfg.amodal:
+            raise BopsurgError(f"{path}: this segmenter predicts no full (amodal) mask")
+        self.mask = mask
+        self.channel = 1 if mask == "full" else 0  # the net's output channel
         self.net = NeedleSegNet(self.cfg)
         load_weights(self.net, state, path)
         self.net.to(device).eval()
@@ -54,7 +73,7 @@ class Segmenter:
         """Foreground probabilities (n, size, size) of the ROIs (see :data:`EvidenceFn`)."""
         index = torch.zeros(len(centre), dtype=torch.long, device=image.device)
         roi = crop(image, centre, side, size, "bilinear", index=index)
-        return torch.sigmoid(self.net(roi))[:, 0].float().cpu().numpy()
+        return torch.sigmoid(self.net(roi))[:, self.channel].float().cpu().numpy()
 
 
 @dataclass
@@ -91,9 +110,14 @@ class NeedleRefiner:
 
     @classmethod
     def from_checkpoint(
-        cls, path: str | Path, device: torch.device, settings: FitSettings | None = None
+        cls,
+        path: str | Path,
+        device: torch.device,
+        settings: FitSettings | None = None,
+        mask: str | None = None,
     ) -> NeedleRefiner:
-        seg = Segmenter(path, device)
+        """A refiner on the segmenter ``path`` (``mask``: see :class:`Segmenter`)."""
+        seg = Segmenter(path, device, mask)
         return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings)
 
     def grids(self, box_xywh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

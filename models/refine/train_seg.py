@@ -1,16 +1,19 @@
-"""Train the needle segmenter (:mod:`.seghead`) on a BOP split's visible masks.
+"""Train the needle segmenter (:mod:`.seghead`) on a BOP split's visible (and full) masks.
 
     python -m bopsurg.models.refine.train_seg DATASET --out runs/seg --steps 1500 --seed 0
 
 Per GT needle instance (visib_fract >= 0.1) a native-resolution context around its visible box
-(2.5 × the box's longer side, zero-padded, no resampling) is cut with its visible mask from the
-files on disk when a batch needs it (only the index of instances is kept in memory). Each step
-draws a batch, jitters the crop as the pose head does (Dynamic Zoom-In: side × U(0.75, 1.25),
-centre ± 0.25 box), cuts the RGB and the mask with the same bilinear ``grid_sample`` the
-estimator uses at test time, adds colour jitter and flips, and minimises BCE + Dice on the mask
-(the bilinear crop makes it the covered fraction of each grid pixel).
-AdamW with warm-up and cosine decay; deterministic for a seed. Writes OUT/needle_seg.pt
-(float16) and its JSON (config, the needle arc from models_info, recipe, seed, time).
+(2.5 × the box's longer side, zero-padded, no resampling) is cut with its visible mask (and,
+for an ``--amodal`` segmenter, its full mask) from the files on disk when a batch needs it
+(only the index of instances is kept in memory). Each step draws a batch, jitters the crop as
+the pose head does (Dynamic Zoom-In: side × U(0.75, 1.25), centre ± 0.25 box), cuts the RGB
+and the masks with the same bilinear ``grid_sample`` the estimator uses at test time, adds
+colour jitter and flips, and minimises BCE + Dice per mask (the bilinear crop makes each the
+covered fraction of each grid pixel). AdamW with warm-up and cosine decay; deterministic for
+a seed. Writes OUT/needle_seg.pt (float16) and its JSON (config, the needle arc from
+models_info, recipe, seed, time). ``--init`` starts from another segmenter's weights (a
+one-channel one gives its visible-mask output to both channels of an amodal one; a stage
+``--stages 4`` adds starts afresh), to fine-tune rather than train from scratch.
 
 The loop is its own here; it should move onto the common epoch loop of ``models/training.py``.
 """
@@ -33,7 +36,7 @@ from tqdm import tqdm
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.errors import BopsurgError
-from bopsurg.models.checkpoint import save_checkpoint
+from bopsurg.models.checkpoint import load_checkpoint, load_weights, save_checkpoint
 from bopsurg.models.data import (
     CONTEXT_RATIO,
     InstanceRecord,
@@ -49,7 +52,8 @@ from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig, seg_loss
 log = logging.getLogger(__name__)
 
 
-#: One context: RGB (s, s, 3) uint8, mask (s, s) uint8, visible box (4,) in context px.
+#: One context: RGB (s, s, 3) uint8, masks (s, s, C) uint8 (visible, then full), visible box
+#: (4,) in context px.
 Context = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
@@ -60,10 +64,13 @@ class ContextSet(Sequence[Context]):
     Args:
         dataset: The split.
         records: The instances.
+        amodal: Also cut the full (amodal) mask, as the masks' second channel.
     """
 
-    def __init__(self, dataset: BopDataset, records: list[InstanceRecord]) -> None:
-        self.dataset, self.records = dataset, records
+    def __init__(
+        self, dataset: BopDataset, records: list[InstanceRecord], amodal: bool = False
+    ) -> None:
+        self.dataset, self.records, self.amodal = dataset, records, amodal
 
     def __len__(self) -> int:
         return len(self.records)
@@ -78,13 +85,16 @@ class ContextSet(Sequence[Context]):
         r = self.records[i]
         scene = self.dataset.scene(r.scene_id)
         rgb = load_rgb(scene.rgb_path(r.im_id))
-        mask = load_mask(scene.mask_visib_path(r.im_id, r.gt_id)).astype(np.uint8)
+        paths = [scene.mask_visib_path(r.im_id, r.gt_id)]
+        if self.amodal:
+            paths.append(scene.mask_path(r.im_id, r.gt_id))
+        mask = np.stack([load_mask(p).astype(np.uint8) for p in paths], axis=-1)
         x, y, w, h = r.bbox_visib
         s = math.ceil(CONTEXT_RATIO * max(w, h, 1))
         x0, y0 = round(x + w / 2 - s / 2), round(y + h / 2 - s / 2)
-        H, W = mask.shape
+        H, W = mask.shape[:2]
         ctx_rgb = np.zeros((s, s, 3), np.uint8)
-        ctx_mask = np.zeros((s, s), np.uint8)
+        ctx_mask = np.zeros((s, s, mask.shape[2]), np.uint8)
         sx, sy = max(x0, 0), max(y0, 0)
         ex, ey = min(x0 + s, W), min(y0 + s, H)
         if ex > sx and ey > sy:
@@ -94,25 +104,25 @@ class ContextSet(Sequence[Context]):
 
 
 def load_contexts(
-    dataset: BopDataset, scene_ids: list[int], obj_id: int, progress: bool
+    dataset: BopDataset, scene_ids: list[int], obj_id: int, progress: bool, amodal: bool = False
 ) -> ContextSet:
     """The instances of ``obj_id`` (visib_fract >= 0.1) of ``scene_ids``; each item is
-    (RGB (s, s, 3) uint8, mask (s, s) uint8, box (4,) in context px), read when indexed.
+    (RGB (s, s, 3) uint8, masks (s, s, C) uint8, box (4,) in context px), read when indexed.
     ``progress`` is accepted for compatibility: nothing is decoded here."""
     del progress
     per_image = list_instances(dataset, scene_ids, obj_ids=[obj_id], min_visib=0.1)
-    return ContextSet(dataset, [r for rs in per_image.values() for r in rs])
+    return ContextSet(dataset, [r for rs in per_image.values() for r in rs], amodal)
 
 
 def make_batch(
     items: Sequence[Context], idx: torch.Tensor, cfg: SegConfig, gen: torch.Generator
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Jittered crops (B, 3, S, S) in [0, 1] and soft masks (B, 1, S, S) of items ``idx``."""
+    """Jittered crops (B, 3, S, S) in [0, 1] and soft masks (B, C, S, S) of items ``idx``."""
     xs, ys = [], []
     for i in idx.tolist():  # contexts differ in size: one grid_sample each
         rgb, mask, box = items[i]
         img = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255
-        m = torch.from_numpy(mask)[None, None].float()
+        m = torch.from_numpy(mask).permute(2, 0, 1)[None].float()
         b = torch.from_numpy(box)[None]
         b = torch.cat([b[:, :2] - 0.5, b[:, 2:]], 1)  # pixel-centre convention, as at test
         centre, side = dzi_boxes(b, gen, (0.25, 0.25, cfg.pad), rgb.shape[:2])
@@ -131,6 +141,25 @@ def make_batch(
     return x, y
 
 
+def init_weights(net: NeedleSegNet, path: Path) -> None:
+    """Load the weights of the segmenter checkpoint ``path`` into ``net``, whose config may
+    add the amodal channel (a one-channel checkpoint's output layer then initialises both:
+    the full mask starts as the visible one) or a stride-2 stage (its layers start afresh);
+    everything else must match."""
+    state, info = load_checkpoint(path, "needle_seg")
+    mine = net.state_dict()
+    for key in ("out.weight", "out.bias"):
+        if key in state and state[key].shape[0] == 1 and mine[key].shape[0] > 1:
+            state[key] = state[key].repeat(mine[key].shape[0], *[1] * (mine[key].dim() - 1))
+    theirs = int(info["config"].get("stages", 3))
+    new = tuple(
+        f"{name}{k - d}." for k in range(theirs + 1, net.cfg.stages + 1) for name, d in
+        (("enc", 0), ("dec", 1))
+    )  # fmt: skip
+    state |= {k: v for k, v in mine.items() if k.startswith(new) and k not in state}
+    load_weights(net, state, path)
+
+
 def train(
     data: Path,
     out: Path,
@@ -141,12 +170,14 @@ def train(
     progress: bool,
     split: str = "train",
     augment: str = "off",
+    init: Path | None = None,
 ) -> Path:
     """Train and write OUT/needle_seg.pt; returns its path.
 
     ``split`` may name several splits (``train,train_wide``); ``augment`` names a
     :class:`~bopsurg.models.photometric.PhotometricConfig` preset applied to the crops
-    (``off``: none, the shipped recipe; ``domain``: blur, noise, gamma, colour, JPEG)."""
+    (``off``: none, the shipped recipe; ``domain``: blur, noise, gamma, colour, JPEG);
+    ``init`` a segmenter checkpoint to start from (:func:`init_weights`)."""
     torch.manual_seed(seed)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     ds = open_split(data, split)
@@ -160,11 +191,13 @@ def train(
             f"{ds.models_dir / 'models_info.json'}: obj 1 needs keypoints ({err})"
         ) from err
     train_ids, _ = split_scenes(ds)
-    items = load_contexts(ds, train_ids, 1, progress)
+    items = load_contexts(ds, train_ids, 1, progress, amodal=cfg.amodal)
     if not items:
         raise BopsurgError(f"{data}: no needle instances with visib_fract >= 0.1 to train on")
     log.info("%d training instances", len(items))
     net = NeedleSegNet(cfg)
+    if init is not None:
+        init_weights(net, init)
     opt = torch.optim.AdamW(net.parameters(), lr=3e-3, weight_decay=1e-4)
     gen = torch.Generator().manual_seed(seed)
     warm = max(1, steps // 20)
@@ -196,6 +229,7 @@ def train(
         "recipe": {"steps": steps, "batch": batch, "lr": 3e-3, "seed": seed},
         **({"split": split} if split != "train" else {}),
         **({"augment": augment} if augment != "off" else {}),
+        **({"init": str(init)} if init is not None else {}),
         "train_seconds": round(seconds, 1),
         "torch": torch.__version__,
     }
@@ -228,14 +262,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--roi", type=int, default=SegConfig.roi, help="ROI side, px")
     ap.add_argument("--width", type=int, default=SegConfig.width, help="full-res channels")
+    ap.add_argument(
+        "--stages",
+        type=int,
+        default=SegConfig.stages,
+        help="stride-2 stages, 3 or 4 (4: twice the context, for the full mask)",
+    )
+    ap.add_argument(
+        "--amodal",
+        action="store_true",
+        help="also predict the needle's full (amodal) mask, the evidence the fit prefers",
+    )
+    ap.add_argument("--init", type=Path, help="start from this segmenter checkpoint (fine-tune)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        cfg = SegConfig(roi=args.roi, width=args.width)
+        cfg = SegConfig(roi=args.roi, width=args.width, amodal=args.amodal, stages=args.stages)
         train(
             args.dataset, args.out, args.steps, args.batch, args.seed, cfg,
-            not args.no_progress, split=args.split, augment=args.augment,
+            not args.no_progress, split=args.split, augment=args.augment, init=args.init,
         )  # fmt: skip
     except (BopsurgError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)  # noqa: T201 (the CLI's one-line error)

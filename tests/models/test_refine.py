@@ -259,3 +259,60 @@ def test_estimator_options_switch_the_refinement(segmenter, tmp_path):
     assert fitted.refiner is not None
     with pytest.raises(BopsurgError, match="refine must be one of"):
         create({"refine": "icp"})
+
+
+@pytest.fixture
+def amodal_segmenter(tmp_path):
+    """An untrained segmenter that also predicts the full (amodal) mask."""
+    cfg = SegConfig(roi=64, width=2, amodal=True)
+    torch.manual_seed(0)
+    path = tmp_path / "amodal" / "needle_seg.pt"
+    meta = {"arc": {"radius": ARC.radius, "arc_rad": ARC.arc_rad}}
+    net = NeedleSegNet(cfg)
+    with torch.no_grad():  # visible channel all background, full channel all foreground
+        net.out.bias.copy_(torch.tensor([-50.0, 50.0]))
+    save_checkpoint(path, net.state_dict(), kind="needle_seg", config=cfg.to_dict(), meta=meta)
+    return path
+
+
+def test_an_amodal_segmenter_gives_the_full_mask_unless_told(amodal_segmenter, segmenter):
+    from bopsurg.models.refine import Segmenter
+
+    image = torch.rand(1, 3, 120, 160, generator=torch.Generator().manual_seed(0))
+    centre, side = torch.tensor([[80.0, 60.0]]), torch.tensor([50.0])
+    full = Segmenter(amodal_segmenter, torch.device("cpu"))
+    assert full.mask == "full"
+    assert full(image, centre, side, 64).shape == (1, 64, 64)
+    assert (full(image, centre, side, 64) > 0.99).all()
+    visible = Segmenter(amodal_segmenter, torch.device("cpu"), "visible")
+    assert (visible(image, centre, side, 64) < 0.01).all()
+    assert Segmenter(segmenter, torch.device("cpu")).mask == "visible"
+    with pytest.raises(BopsurgError, match="no full"):
+        Segmenter(segmenter, torch.device("cpu"), "full")
+    with pytest.raises(BopsurgError, match="mask must be one of"):
+        Segmenter(amodal_segmenter, torch.device("cpu"), "both")
+    est = create(
+        {"no_detector": "1", "segmenter": str(amodal_segmenter), "mask": "visible", "device": "cpu"}
+    )
+    assert est.refiner is not None
+
+
+def test_the_full_mask_keeps_a_half_hidden_arc_whole():
+    """Behind an occluder the visible part alone lets the arc slide and shrink into it; the
+    full mask (what an amodal segmenter predicts) pins the depth as if nothing hid it."""
+    R, t = _pose(45.0, 10.0, (0.0, 0.0, 80.0))
+    R0, t0 = _perturbed(R, t)
+    full = refine_pose(R0, t0, K, _evidence(R, t), ARC)
+    visible = refine_pose(R0, t0, K, _evidence(R, t, hidden=0.5), ARC)
+    te_full = metrics.te(full.t[None], t[None])[0]
+    assert te_full < 1.0  # from 3 mm
+    assert metrics.te(visible.t[None], t[None])[0] > 2 * te_full
+
+
+def test_a_deeper_segmenter_keeps_the_roi_and_refuses_bad_sizes():
+    net = NeedleSegNet(SegConfig(roi=64, width=2, amodal=True, stages=4))
+    assert net(torch.rand(1, 3, 64, 64)).shape == (1, 2, 64, 64)
+    with pytest.raises(ValueError, match="stages"):
+        SegConfig(stages=5)
+    with pytest.raises(ValueError, match="multiple of 16"):
+        SegConfig(roi=40, stages=4)

@@ -52,3 +52,33 @@ def test_a_missing_split_is_one_line(dataset, tmp_path, capsys):
     assert err[-1].startswith("error: ")
     assert "nope" in err[-1]
     assert "split folder not found" in err[-1]
+
+
+def test_amodal_fine_tune_from_a_visible_mask_segmenter(dataset, tmp_path):
+    """``--amodal --init``: two output channels, both started from the one-channel
+    checkpoint's output layer, the init recorded; the full-mask targets hold the visible."""
+    from bopsurg.bop.dataset import BopDataset
+    from bopsurg.models.refine.train_seg import load_contexts
+
+    assert _train(dataset, tmp_path / "plain") == 0
+    init = tmp_path / "plain" / "needle_seg.pt"
+    assert _train(dataset, tmp_path / "am", "--amodal", "--init", str(init)) == 0
+    state, info = load_checkpoint(tmp_path / "am" / "needle_seg.pt", "needle_seg")
+    assert info["config"]["amodal"] is True
+    assert info["meta"]["init"] == str(init)
+    assert state["out.weight"].shape[0] == 2
+    ds = BopDataset(dataset, "train")
+    items = load_contexts(ds, ds.scene_ids, 1, False, amodal=True)
+    masks = [m for _rgb, m, _box in items]
+    assert all(m.shape[2] == 2 for m in masks)
+    assert all((m[..., 1] >= m[..., 0]).all() for m in masks)  # full ⊇ visible
+    assert sum(int(m[..., 1].sum() - m[..., 0].sum()) for m in masks) > 0  # some hidden wire
+    # a deeper amodal net from it: the new stage starts afresh, the rest is loaded
+    deep = ("--amodal", "--stages", "4", "--init", str(tmp_path / "am" / "needle_seg.pt"))
+    assert _train(dataset, tmp_path / "deep", *deep, "--steps", "0") == 0
+    deep_state, deep_info = load_checkpoint(tmp_path / "deep" / "needle_seg.pt", "needle_seg")
+    assert deep_info["config"]["stages"] == 4
+    assert "enc4.0.weight" in deep_state
+    assert torch.equal(deep_state["enc3.0.weight"], state["enc3.0.weight"])
+    # a missing init is one line
+    assert _train(dataset, tmp_path / "bad", "--init", str(tmp_path / "none.pt")) == 2
