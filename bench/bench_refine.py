@@ -44,13 +44,16 @@ PAPER = {"re": 7.74, "te": 1.49, "mssd": 1.43}
 ORACLE_GRID = 192
 
 
-def gt_mask_evidence(mask: np.ndarray):
-    """An evidence source that crops a GT mask like the segmenter crops the image."""
-    m = torch.from_numpy(mask.astype(np.float32))[None, None]
+def gt_mask_evidence(mask: np.ndarray, full: np.ndarray | None = None):
+    """An evidence source that crops GT masks like the segmenter crops the image: the visible
+    ``mask``, or it and the ``full`` mask (as a full-mask segmenter gives them)."""
+    planes = [mask] if full is None else [mask, full]
+    m = torch.from_numpy(np.stack(planes).astype(np.float32))[None]
 
     def evidence(image, centre, side, size):
         index = torch.zeros(len(centre), dtype=torch.long)
-        return crop(m, centre, side, size, "bilinear", index=index)[:, 0].numpy()
+        prob = crop(m, centre, side, size, "bilinear", index=index).numpy()
+        return prob if full is not None else prob[:, 0]
 
     return evidence
 
@@ -188,8 +191,9 @@ def main() -> None:
             poses["after"] = refiner(image, K, box, R0, t0)[:2]
             ref_ms.append(1000 * (time.perf_counter() - t2))
         if args.oracle:
-            gt_path = scene.mask_path if oracle_mask == "full" else scene.mask_visib_path
-            oracle.evidence = gt_mask_evidence(load_mask(gt_path(i, 0)))
+            visible = load_mask(scene.mask_visib_path(i, 0))
+            full = load_mask(scene.mask_path(i, 0)) if oracle_mask == "full" else None
+            oracle.evidence = gt_mask_evidence(visible, full)
             t2 = time.perf_counter()
             poses["oracle"] = oracle(image, K, box, R0, t0)[:2]
             oracle_ms.append(1000 * (time.perf_counter() - t2))

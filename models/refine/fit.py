@@ -105,14 +105,24 @@ class Evidence:
 
     @classmethod
     def from_mask(
-        cls, mask: NDArray[np.bool_], origin: F64, step: float, max_points: int = 400
+        cls,
+        mask: NDArray[np.bool_],
+        origin: F64,
+        step: float,
+        max_points: int = 400,
+        explain: NDArray[np.bool_] | None = None,
     ) -> Evidence:
         """Evidence from a boolean foreground grid; at most ``max_points`` pixels, evenly
-        strided in scan order (deterministic) for the reverse term."""
+        strided in scan order (deterministic) for the reverse term.
+
+        ``explain`` (same grid; default ``mask``) names the pixels the wire must explain (the
+        reverse term), while ``mask`` sets where it may lie (the distance and outline terms):
+        the visible and the full (amodal) mask of a needle, so that a wrongly completed hidden
+        part is not pulled on, and the arc may still run behind an occluder."""
         import cv2  # the core's dependency; imported here to keep module import light
 
         mask = np.asarray(mask, bool)
-        rows, cols = np.nonzero(mask)
+        rows, cols = np.nonzero(mask if explain is None else np.asarray(explain, bool))
         if len(rows) > max_points:
             keep = np.linspace(0, len(rows) - 1, max_points).round().astype(np.int64)
             rows, cols = rows[keep], cols[keep]

@@ -24,12 +24,15 @@ from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
 #: Foreground threshold on the segmenter's probability.
 MASK_THRESHOLD = 0.5
 
-#: Which of a segmenter's masks is the fit's evidence: ``full`` (amodal; the default when the
-#: segmenter predicts it) or ``visible``.
+#: The fit's evidence from a segmenter: ``full`` (the default when the segmenter predicts the
+#: full, amodal mask: the arc may lie on the full mask, the pixels it must explain are the
+#: visible ones) or ``visible`` (the visible mask for both). Fitting the full mask alone was
+#: worse on both validation sets (MODEL_CARD.md).
 MASK_KINDS = ("full", "visible")
 
 #: Evidence source: (image (1, 3, H, W) float in [0, 1], centres (n, 2) px, sides (n,) px,
-#: grid side S) → (n, S, S) foreground probabilities on the ROI grids.
+#: grid side S) → foreground probabilities on the ROI grids: (n, S, S) of one mask, or
+#: (n, 2, S, S) of the visible and the full mask.
 EvidenceFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int], np.ndarray]
 
 
@@ -60,7 +63,7 @@ class Segmenter:
         if mask == "full" and not self.cfg.amodal:
             raise BopsurgError(f"{path}: this segmenter predicts no full (amodal) mask")
         self.mask = mask
-        self.channel = 1 if mask == "full" else 0  # the net's output channel
+        self.channels = [0, 1] if mask == "full" else [0]  # the net's outputs used
         self.net = NeedleSegNet(self.cfg)
         load_weights(self.net, state, path)
         self.net.to(device).eval()
@@ -70,10 +73,12 @@ class Segmenter:
     def __call__(
         self, image: torch.Tensor, centre: torch.Tensor, side: torch.Tensor, size: int
     ) -> np.ndarray:
-        """Foreground probabilities (n, size, size) of the ROIs (see :data:`EvidenceFn`)."""
+        """Foreground probabilities of the ROIs: (n, size, size) visible, or (n, 2, size,
+        size) visible and full with ``mask="full"`` (see :data:`EvidenceFn`)."""
         index = torch.zeros(len(centre), dtype=torch.long, device=image.device)
         roi = crop(image, centre, side, size, "bilinear", index=index)
-        return torch.sigmoid(self.net(roi))[:, self.channel].float().cpu().numpy()
+        prob = torch.sigmoid(self.net(roi))[:, self.channels].float().cpu().numpy()
+        return prob if len(self.channels) > 1 else prob[:, 0]
 
 
 @dataclass
@@ -150,7 +155,14 @@ class NeedleRefiner:
         for i in range(len(R)):  # one small least-squares problem per ROI
             step = s_np[i] / self.grid
             origin = c_np[i] - 0.5 * self.grid * step
-            ev = Evidence.from_mask(prob[i] > MASK_THRESHOLD, origin, step)
+            fg = prob[i] > MASK_THRESHOLD
+            # (2, S, S): visible and full; the full mask bounds the arc, the visible one is
+            # what it must explain
+            ev = (
+                Evidence.from_mask(fg[1], origin, step, explain=fg[0])
+                if fg.ndim == 3
+                else Evidence.from_mask(fg, origin, step)
+            )
             res = refine_pose(R[i], t[i], K, ev, self.arc, self.settings)
             R_out[i], t_out[i], changed[i] = res.R, res.t, res.improved
         self.stats.refined += int(changed.sum())
