@@ -116,8 +116,9 @@ def main() -> None:
         "--mask",
         choices=["full", "visible"],
         default=None,
-        help="the segmenter's mask the fit uses, and the GT mask of --oracle (default: full "
-        "when the segmenter predicts it, else visible)",
+        help="the segmenter's evidence the fit uses, and the GT masks of --oracle: full (the "
+        "full and the visible mask; the default when the segmenter predicts the full mask) "
+        "or visible",
     )
     ap.add_argument("--oracle", action="store_true", help="also refine against GT masks")
     ap.add_argument("--stride", type=int, default=1, help="every n-th image (quick looks)")

@@ -120,8 +120,9 @@ class GdrNetEstimator:
         decode: ``direct`` (rotation + SITE heads) or ``pnp`` (PnP-RANSAC on the coordinates;
             a ROI where PnP finds no solution keeps the direct pose, see ``pnp_fallback``).
         segmenter: Needle-segmenter checkpoint for the refinement, or None for none.
-        mask: The segmenter's mask the fit uses (``full``, ``visible``; None: ``full`` when
-            the segmenter predicts it).
+        mask: The segmenter's evidence the fit uses (``full``: the arc on the full mask, the
+            wire explaining the visible one; ``visible``: the visible mask alone; None:
+            ``full`` when the segmenter predicts the full mask).
         fit: The refinement's fit settings (default :class:`FitSettings`).
         zoom: Crop sides of the direct decoding, as multiples of the test-time DZI crop
             (default :data:`ZOOM_SCALES`); the poses of the crops are averaged.
@@ -291,12 +292,12 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     ``decode`` (``direct`` or ``pnp``), ``no_detector`` (``1``: external boxes only),
     ``refine`` (``fit``: fit the needle arc to its full-resolution mask; ``none``: the network's
     pose as it is; default ``fit`` when a segmenter is shipped, else ``none``),
-    ``segmenter`` (its checkpoint; default: the shipped one), ``mask`` (the segmenter's mask the
-    fit uses: ``full``, the amodal one, by default when it predicts one, or ``visible``),
-    ``min_explained`` (the fit's out-of-domain guard: the share of the mask its wire must
-    explain, else the network's pose is kept; default :attr:`FitSettings.min_explained`) and
-    ``zoom`` (comma-separated crop-side
-    multiples whose direct poses are averaged; default :data:`ZOOM_SCALES`, ``1`` for one crop).
+    ``segmenter`` (its checkpoint; default: the shipped one), ``mask`` (the segmenter's
+    evidence the fit uses: ``full``, its full and visible masks, the default when it predicts
+    the full mask, or ``visible`` alone), ``min_explained`` (the fit's out-of-domain guard: the
+    share of the visible mask its wire must explain, else the network's pose is kept; default
+    :attr:`FitSettings.min_explained`) and ``zoom`` (comma-separated crop-side multiples whose
+    direct poses are averaged; default :data:`ZOOM_SCALES`, ``1`` for one crop).
     """
     known = {"detector", "pose", "device", "conf", "max_per_object", "decode", "no_detector"}
     known |= {"refine", "segmenter", "mask", "min_explained", "zoom"}

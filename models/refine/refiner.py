@@ -1,9 +1,10 @@
 """The refinement stage of the ``gdrnet`` estimator: evidence at full resolution, then the fit.
 
-Per ROI: the segmenter (:mod:`.seghead`) predicts the needle's mask on a square grid of about
-one image px around the detection (its full, amodal mask when it predicts one, else the
-visible mask), and :func:`.fit.refine_pose` fits the exact arc to it, starting from the pose
-head's estimate; a fit that does not lower its own cost keeps the pose head's pose.
+Per ROI: the segmenter (:mod:`.seghead`) predicts the needle's masks on a square grid of
+about one image px around the detection (the visible one, and the full, amodal one when it
+predicts it), and :func:`.fit.refine_pose` fits the exact arc to them (the wire explains the
+visible pixels, the arc lies on the full mask), starting from the pose head's estimate; a fit
+that does not lower its own cost keeps the pose head's pose.
 """
 
 from __future__ import annotations

@@ -9,6 +9,7 @@ pixel.
 With ``amodal`` it predicts a second channel, the needle's full (amodal) mask: the wire
 where it is hidden too (behind the jaws, the thread, the tissue). A fit to the visible part
 alone can slide and shrink the arc into that part; the full mask keeps the arc whole.
+
 Train and test crop the same way (one bilinear ``grid_sample`` from the full image,
 :func:`bopsurg.models.pose.roi.crop`), so the wire's aliasing is the same in both.
 """
@@ -28,12 +29,13 @@ from torch import nn
 class SegConfig:
     """Sizes of the segmenter (px)."""
 
-    roi: int = 160  # ROI side the crop is resampled to, px (multiple of 8)
+    roi: int = 160  # ROI side the crop is resampled to, px (a multiple of 2**stages)
     width: int = 8  # channels at full resolution; 2w, 4w, 4w below
     pad: float = 1.5  # crop side = pad · max(w, h) of the box (the pose head's test crop)
     amodal: bool = False  # also predict the full (amodal) mask, as output channel 1
-    # stride-2 stages: 3 sees about 70 px around a pixel, 4 about 140 px, enough to carry the
-    # arc across an occluder as wide as half the needle (the full mask needs that context)
+    # stride-2 stages: an output pixel sees about 60 px of the ROI with 3, about 125 px with 4,
+    # enough to carry the arc across an occluder as wide as half the needle (the full mask
+    # needs that context)
     stages: int = 3
 
     @property
