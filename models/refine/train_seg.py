@@ -151,11 +151,8 @@ def init_weights(net: NeedleSegNet, path: Path) -> None:
     for key in ("out.weight", "out.bias"):
         if key in state and state[key].shape[0] == 1 and mine[key].shape[0] > 1:
             state[key] = state[key].repeat(mine[key].shape[0], *[1] * (mine[key].dim() - 1))
-    theirs = int(info["config"].get("stages", 3))
-    new = tuple(
-        f"{name}{k - d}." for k in range(theirs + 1, net.cfg.stages + 1) for name, d in
-        (("enc", 0), ("dec", 1))
-    )  # fmt: skip
+    added = range(int(info["config"].get("stages", 3)) + 1, net.cfg.stages + 1)
+    new = tuple(f"enc{k}." for k in added) + tuple(f"dec{k - 1}." for k in added)
     state |= {k: v for k, v in mine.items() if k.startswith(new) and k not in state}
     load_weights(net, state, path)
 
