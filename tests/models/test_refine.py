@@ -73,6 +73,20 @@ def _perturbed(R, t):
     return R @ _exp_so3(np.array([0.0, 0.0, np.deg2rad(5.0)])), t + np.array([0.0, 0.0, 3.0])
 
 
+def _mask_source(*planes: np.ndarray):
+    """An evidence source cropping full-image masks as the segmenter crops the image: one
+    plane gives (n, S, S), two (visible, full) give (n, 2, S, S)."""
+    from bopsurg.models.pose.roi import crop
+
+    m = torch.from_numpy(np.stack(planes).astype(np.float32))[None]
+
+    def evidence(image, centre, side, size):
+        prob = crop(m, centre, side, size, "bilinear").numpy()
+        return prob if len(planes) > 1 else prob[:, 0]
+
+    return evidence
+
+
 #: The fit on image evidence alone (no prior towards the start).
 IMAGE_ONLY = FitSettings(prior_weight=0.0)
 
@@ -234,14 +248,8 @@ def test_the_stage_uses_given_evidence():
     ys, xs = np.nonzero(mask)
     box = torch.tensor([[xs.min(), ys.min(), np.ptp(xs), np.ptp(ys)]], dtype=torch.float32)
 
-    def oracle(image, centre, side, size):
-        from bopsurg.models.pose.roi import crop
-
-        m = torch.from_numpy(mask.astype(np.float32))[None, None]
-        return crop(m, centre, side, size, "bilinear")[:, 0].numpy()
-
     R0, t0 = _perturbed(R, t)
-    _R2, t2, changed = NeedleRefiner(oracle, ARC, 192, settings=IMAGE_ONLY)(
+    _R2, t2, changed = NeedleRefiner(_mask_source(mask), ARC, 192, settings=IMAGE_ONLY)(
         None, K, box, R0[None], t0[None]
     )
     assert changed[0]
@@ -333,21 +341,11 @@ def test_the_stage_fits_the_full_mask_and_explains_the_visible_one():
     visible[:, int(np.quantile(xs, 0.5)) :] = False
     box = torch.tensor([[xs.min(), ys.min(), np.ptp(xs), np.ptp(ys)]], dtype=torch.float32)
 
-    def source(planes):
-        def evidence(image, centre, side, size):
-            from bopsurg.models.pose.roi import crop
-
-            m = torch.from_numpy(np.stack(planes).astype(np.float32))[None]
-            prob = crop(m, centre, side, size, "bilinear").numpy()
-            return prob if len(planes) > 1 else prob[:, 0]
-
-        return evidence
-
     R0, t0 = _perturbed(R, t)
-    _, t_both, changed = NeedleRefiner(source([visible, full]), ARC, 192)(
+    _, t_both, changed = NeedleRefiner(_mask_source(visible, full), ARC, 192)(
         None, K, box, R0[None], t0[None]
     )
-    _, t_vis, _ = NeedleRefiner(source([visible]), ARC, 192)(None, K, box, R0[None], t0[None])
+    _, t_vis, _ = NeedleRefiner(_mask_source(visible), ARC, 192)(None, K, box, R0[None], t0[None])
     assert changed[0]
     te_both = metrics.te(t_both, t[None])[0]
     assert te_both < 2.0  # from 3 mm

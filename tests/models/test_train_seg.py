@@ -67,6 +67,15 @@ def test_amodal_fine_tune_from_a_visible_mask_segmenter(dataset, tmp_path):
     assert info["config"]["amodal"] is True
     assert info["meta"]["init"] == str(init)
     assert state["out.weight"].shape[0] == 2
+    # before training, both channels are the one-channel checkpoint's output layer
+    from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
+    from bopsurg.models.refine.train_seg import init_weights
+
+    start = NeedleSegNet(SegConfig(roi=64, width=4, amodal=True))
+    init_weights(start, init)
+    plain, _ = load_checkpoint(init, "needle_seg")
+    for key in ("out.weight", "out.bias"):
+        assert all(torch.equal(start.state_dict()[key][c], plain[key][0]) for c in (0, 1))
     ds = BopDataset(dataset, "train")
     items = load_contexts(ds, ds.scene_ids, 1, False, amodal=True)
     masks = [m for _rgb, m, _box in items]
