@@ -5,6 +5,7 @@ and a resume with another configuration refused."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import yaml
@@ -159,3 +160,21 @@ def test_a_run_of_an_older_bopsurg_resumes(dataset, tmp_path):
     (out / "train_state.json").write_text(json.dumps(settings))
     assert main([*args, "--epochs", "2"]) == 0
     assert load_tensors(out / "detector.pt")  # resumed, not refused
+
+
+RECIPES = sorted((Path(__file__).parents[2] / "bench" / "recipes").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("recipe", RECIPES, ids=lambda p: p.name)
+def test_shipped_recipes_resolve_and_say_what_they_set(recipe, capsys):
+    """The model card's commands pass these files to ``bopsurg train --config``: each must
+    still resolve (no key renamed away under it), and every value it sets must reach the run."""
+    kind = "detector" if "detector" in recipe.name else "pose"
+    conf = _dump(capsys, kind, "--config", str(recipe))
+    for section, values in yaml.safe_load(recipe.read_text(encoding="utf-8")).items():
+        if not isinstance(values, dict):
+            assert conf[section] == values, section
+            continue
+        for key, value in values.items():
+            if key != "preset":  # augment's named starting set, resolved into its fields
+                assert conf[section][key] == value, f"{section}.{key}"
