@@ -44,14 +44,12 @@ class SegConfig:
         return 2 if self.amodal else 1
 
     def __post_init__(self) -> None:
-        if self.roi <= 0 or self.roi % 8:
-            raise ValueError(f"roi must be a positive multiple of 8, got {self.roi}")
-        if self.width < 1:
-            raise ValueError(f"width must be >= 1, got {self.width}")
         if self.stages not in (3, 4):
             raise ValueError(f"stages must be 3 or 4, got {self.stages}")
-        if self.roi % 2**self.stages:
-            raise ValueError(f"roi must be a multiple of {2**self.stages}, got {self.roi}")
+        if self.roi <= 0 or self.roi % 2**self.stages:  # every stage halves it exactly
+            raise ValueError(f"roi must be a positive multiple of {2**self.stages}, got {self.roi}")
+        if self.width < 1:
+            raise ValueError(f"width must be >= 1, got {self.width}")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
