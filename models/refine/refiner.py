@@ -64,7 +64,7 @@ class Segmenter:
         if mask == "full" and not self.cfg.amodal:
             raise BopsurgError(f"{path}: this segmenter predicts no full (amodal) mask")
         self.mask = mask
-        self.channels = [0, 1] if mask == "full" else [0]  # the net's outputs used
+        self.outputs = [0, 1] if mask == "full" else [0]  # indices of the net's outputs used
         self.net = NeedleSegNet(self.cfg)
         load_weights(self.net, state, path)
         self.net.to(device).eval()
@@ -78,8 +78,8 @@ class Segmenter:
         size) visible and full with ``mask="full"`` (see :data:`EvidenceFn`)."""
         index = torch.zeros(len(centre), dtype=torch.long, device=image.device)
         roi = crop(image, centre, side, size, "bilinear", index=index)
-        prob = torch.sigmoid(self.net(roi))[:, self.channels].float().cpu().numpy()
-        return prob if len(self.channels) > 1 else prob[:, 0]
+        prob = torch.sigmoid(self.net(roi))[:, self.outputs].float().cpu().numpy()
+        return prob if len(self.outputs) > 1 else prob[:, 0]
 
 
 @dataclass
