@@ -82,6 +82,22 @@ class Segmenter:
         return prob if len(self.outputs) > 1 else prob[:, 0]
 
 
+def arc_boxes(
+    box_xywh: torch.Tensor, arc: ArcModel, K: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> torch.Tensor:
+    """Boxes (n, 4) (x, y, w, h), px, grown to hold the arc projected at the poses ``R``
+    (n, 3, 3), ``t`` (n, 3) mm; a pose that puts the arc behind the camera keeps its box."""
+    X = np.einsum("nij,mj->nmi", R, arc.points(32)) + t[:, None, :]
+    z = X[..., 2:]
+    uv = (X @ K.T)[..., :2] / np.where(z > 1e-6, z, 1.0)
+    ok = (z[..., 0] > 1e-6).all(axis=1) & np.isfinite(uv).all(axis=(1, 2))
+    b = box_xywh.detach().cpu().double().numpy()
+    lo = np.minimum(b[:, :2], uv.min(axis=1))
+    hi = np.maximum(b[:, :2] + b[:, 2:], uv.max(axis=1))
+    grown = np.where(ok[:, None], np.concatenate([lo, hi - lo], axis=1), b)
+    return torch.as_tensor(grown, dtype=box_xywh.dtype, device=box_xywh.device)
+
+
 @dataclass
 class RefineStats:
     """How many ROIs the fit improved, and how many kept the network's pose."""
@@ -100,6 +116,9 @@ class NeedleRefiner:
         grid: evidence grid side S, px (the segmenter's ROI side).
         pad: grid side = pad · max(w, h) of the detection box.
         settings: fit knobs.
+        whole: frame the box grown to hold the start pose's whole projected arc (a segmenter
+            trained with :attr:`SegConfig.frame` ``"whole"``), so that the evidence covers
+            the part of a needle hidden in tissue.
     """
 
     def __init__(
@@ -109,8 +128,10 @@ class NeedleRefiner:
         grid: int,
         pad: float = 1.5,
         settings: FitSettings | None = None,
+        whole: bool = False,
     ) -> None:
         self.evidence, self.arc, self.grid, self.pad = evidence, arc, grid, pad
+        self.whole = whole
         self.settings = settings or FitSettings()
         self.stats = RefineStats()
 
@@ -124,7 +145,7 @@ class NeedleRefiner:
     ) -> NeedleRefiner:
         """A refiner on the segmenter ``path`` (``mask``: see :class:`Segmenter`)."""
         seg = Segmenter(path, device, mask)
-        return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings)
+        return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings, seg.cfg.frame == "whole")
 
     def grids(self, box_xywh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Grid centre (n, 2) px and side (n,) px of boxes (x, y, w, h) in pixel-centre px."""
@@ -147,6 +168,8 @@ class NeedleRefiner:
             box_xywh: (n, 4) boxes (x, y, w, h), pixel-centre px.
             R, t: the pose head's estimates, float64.
         """
+        if self.whole:
+            box_xywh = arc_boxes(box_xywh, self.arc, np.asarray(K, float), R, t)
         centre, side = self.grids(box_xywh)
         prob = self.evidence(image, centre, side, self.grid)
         c_np = centre.detach().cpu().double().numpy()

@@ -37,6 +37,11 @@ class SegConfig:
     # enough to carry the arc across an occluder as wide as half the needle (the full mask
     # needs that context)
     stages: int = 3
+    # what the ROI frames, in training and at test: "visible", the visible (detection) box;
+    # "whole", that box grown to the needle's whole projection (in training the full mask's
+    # box, at test the start pose's projected arc), so a needle half in tissue has its hidden
+    # part in view (MODEL_CARD.md, "Needle refinement")
+    frame: str = "visible"
 
     @property
     def channels(self) -> int:
@@ -48,6 +53,10 @@ class SegConfig:
             raise ValueError(f"stages must be 3 or 4, got {self.stages}")
         if self.roi <= 0 or self.roi % 2**self.stages:  # every stage halves it exactly
             raise ValueError(f"roi must be a positive multiple of {2**self.stages}, got {self.roi}")
+        if self.frame not in ("visible", "whole"):
+            raise ValueError(f"frame must be 'visible' or 'whole', got {self.frame!r}")
+        if self.frame == "whole" and not self.amodal:
+            raise ValueError("frame 'whole' needs the full (amodal) mask: set amodal")
         if self.width < 1:
             raise ValueError(f"width must be >= 1, got {self.width}")
 

@@ -3,7 +3,8 @@
     python -m bopsurg.models.refine.train_seg DATASET --out runs/seg --steps 1500 --seed 0
 
 Per GT needle instance (visib_fract >= 0.1) a native-resolution context around its visible box
-(2.5 × the box's longer side, zero-padded, no resampling) is cut with its visible mask (and,
+(with ``--frame whole``: that box grown to the full mask's box, the whole needle; 2.5 × the
+box's longer side, zero-padded, no resampling) is cut with its visible mask (and,
 for an ``--amodal`` segmenter, its full mask) from the files on disk when a batch needs it
 (only the index of instances is kept in memory). Each step draws a batch, jitters the crop as
 the pose head does (Dynamic Zoom-In: side × U(0.75, 1.25), centre ± 0.25 box), cuts the RGB
@@ -65,12 +66,18 @@ class ContextSet(Sequence[Context]):
         dataset: The split.
         records: The instances.
         amodal: Also cut the full (amodal) mask, as the masks' second channel.
+        whole: Frame the visible box grown to the full mask's box (needs ``amodal``), as
+            :attr:`SegConfig.frame` ``"whole"`` does at test time.
     """
 
     def __init__(
-        self, dataset: BopDataset, records: list[InstanceRecord], amodal: bool = False
+        self,
+        dataset: BopDataset,
+        records: list[InstanceRecord],
+        amodal: bool = False,
+        whole: bool = False,
     ) -> None:
-        self.dataset, self.records, self.amodal = dataset, records, amodal
+        self.dataset, self.records, self.amodal, self.whole = dataset, records, amodal, whole
 
     def __len__(self) -> int:
         return len(self.records)
@@ -90,6 +97,12 @@ class ContextSet(Sequence[Context]):
             paths.append(scene.mask_path(r.im_id, r.gt_id))
         mask = np.stack([load_mask(p).astype(np.uint8) for p in paths], axis=-1)
         x, y, w, h = r.bbox_visib
+        if self.whole and self.amodal:
+            rows, cols = np.nonzero(mask[..., 1])
+            if len(rows):  # BOP boxes: w = x_max - x_min
+                x0, y0 = min(x, int(cols.min())), min(y, int(rows.min()))
+                x1, y1 = max(x + w, int(cols.max())), max(y + h, int(rows.max()))
+                x, y, w, h = x0, y0, x1 - x0, y1 - y0
         s = math.ceil(CONTEXT_RATIO * max(w, h, 1))
         x0, y0 = round(x + w / 2 - s / 2), round(y + h / 2 - s / 2)
         H, W = mask.shape[:2]
@@ -104,14 +117,19 @@ class ContextSet(Sequence[Context]):
 
 
 def load_contexts(
-    dataset: BopDataset, scene_ids: list[int], obj_id: int, progress: bool, amodal: bool = False
+    dataset: BopDataset,
+    scene_ids: list[int],
+    obj_id: int,
+    progress: bool,
+    amodal: bool = False,
+    whole: bool = False,
 ) -> ContextSet:
     """The instances of ``obj_id`` (visib_fract >= 0.1) of ``scene_ids``; each item is
     (RGB (s, s, 3) uint8, masks (s, s, C) uint8, box (4,) in context px), read when indexed.
     ``progress`` is accepted for compatibility: nothing is decoded here."""
     del progress
     per_image = list_instances(dataset, scene_ids, obj_ids=[obj_id], min_visib=0.1)
-    return ContextSet(dataset, [r for rs in per_image.values() for r in rs], amodal)
+    return ContextSet(dataset, [r for rs in per_image.values() for r in rs], amodal, whole)
 
 
 def make_batch(
@@ -188,7 +206,7 @@ def train(
             f"{ds.models_dir / 'models_info.json'}: obj 1 needs keypoints ({err})"
         ) from err
     train_ids, _ = split_scenes(ds)
-    items = load_contexts(ds, train_ids, 1, progress, amodal=cfg.amodal)
+    items = load_contexts(ds, train_ids, 1, progress, amodal=cfg.amodal, whole=cfg.frame == "whole")
     if not items:
         raise BopsurgError(f"{data}: no needle instances with visib_fract >= 0.1 to train on")
     log.info("%d training instances", len(items))
@@ -270,12 +288,22 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also predict the needle's full (amodal) mask, the evidence the fit prefers",
     )
+    ap.add_argument(
+        "--frame",
+        choices=["visible", "whole"],
+        default=SegConfig.frame,
+        help="what the ROI frames: the visible box (default), or the needle's whole "
+        "projection (needs --amodal; at test, the start pose's projected arc)",
+    )
     ap.add_argument("--init", type=Path, help="start from this segmenter checkpoint (fine-tune)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        cfg = SegConfig(roi=args.roi, width=args.width, amodal=args.amodal, stages=args.stages)
+        cfg = SegConfig(
+            roi=args.roi, width=args.width, amodal=args.amodal, stages=args.stages,
+            frame=args.frame,
+        )  # fmt: skip
         train(
             args.dataset, args.out, args.steps, args.batch, args.seed, cfg,
             not args.no_progress, split=args.split, augment=args.augment, init=args.init,

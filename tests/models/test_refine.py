@@ -350,3 +350,50 @@ def test_the_stage_fits_the_full_mask_and_explains_the_visible_one():
     te_both = metrics.te(t_both, t[None])[0]
     assert te_both < 2.0  # from 3 mm
     assert te_both < 0.5 * metrics.te(t_vis, t[None])[0]
+
+
+def test_arc_boxes_hold_the_projected_arc_and_skip_poses_behind_the_camera():
+    from bopsurg.models.refine.refiner import arc_boxes
+
+    R, t = _pose(50.0, 15.0, (1.0, 2.0, 85.0))
+    full = _silhouette(R, t)
+    ys, xs = np.nonzero(full)
+    # the detection box of a needle whose left half is hidden
+    left = xs < np.median(xs)
+    vis = torch.tensor([[xs[~left].min(), ys.min(), np.ptp(xs[~left]), np.ptp(ys)]]).float()
+    grown = arc_boxes(vis, ARC, K, R[None], t[None])[0].numpy()
+    assert grown[0] <= xs.min() + 2.0  # reaches the hidden end (the centre line, not the wire)
+    assert grown[0] + grown[2] >= vis[0, 0] + vis[0, 2]  # and keeps the visible box
+    behind = arc_boxes(vis, ARC, K, R[None], -t[None])
+    assert torch.equal(behind, vis)
+
+
+def test_a_whole_frame_stage_asks_for_evidence_around_the_start_arc():
+    """With ``whole`` the ROI holds the start pose's projected arc, not only the detection
+    box; a half-hidden needle's full mask is then in view, and the fit uses it."""
+    R, t = _pose(60.0, 20.0, (0.0, 0.0, 80.0))
+    full = _silhouette(R, t)
+    _ys, xs = np.nonzero(full)
+    visible = full.copy()
+    visible[:, int(np.quantile(xs, 0.5)) :] = False
+    vy, vx = np.nonzero(visible)
+    box = torch.tensor([[vx.min(), vy.min(), np.ptp(vx), np.ptp(vy)]], dtype=torch.float32)
+    asked = []
+    source = _mask_source(visible, full)
+
+    def recording(image, centre, side, size):
+        asked.append((centre.numpy().copy(), side.numpy().copy()))
+        return source(image, centre, side, size)
+
+    R0, t0 = _perturbed(R, t)
+    _, t_whole, changed = NeedleRefiner(recording, ARC, 192, whole=True)(
+        None, K, box, R0[None], t0[None]
+    )
+    NeedleRefiner(recording, ARC, 192)(None, K, box, R0[None], t0[None])  # the box alone
+    (c_whole, s_whole), (_, s_box) = asked
+    half = 0.5 * s_whole[0]
+    assert c_whole[0, 0] - half <= xs.min()
+    assert c_whole[0, 0] + half >= xs.max()
+    assert s_whole[0] > s_box[0]
+    assert changed[0]
+    assert metrics.te(t_whole, t[None])[0] < 2.0  # from 3 mm

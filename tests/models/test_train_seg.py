@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 
+import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -91,3 +92,27 @@ def test_amodal_fine_tune_from_a_visible_mask_segmenter(dataset, tmp_path):
     assert torch.equal(deep_state["enc3.0.weight"], state["enc3.0.weight"])
     # a missing init is one line
     assert _train(dataset, tmp_path / "bad", "--init", str(tmp_path / "none.pt")) == 2
+
+
+def test_whole_frame_contexts_hold_the_full_mask_and_need_it(dataset, tmp_path, capsys):
+    """``--frame whole``: each context is cut around the visible box grown to the full mask's
+    box, recorded in the config; without ``--amodal`` it is a one-line error."""
+    from bopsurg.bop.dataset import BopDataset
+    from bopsurg.models.refine.train_seg import load_contexts
+
+    ds = BopDataset(dataset, "train")
+    for rgb, mask, box in load_contexts(ds, ds.scene_ids, 1, False, amodal=True, whole=True):
+        rows, cols = np.nonzero(mask[..., 1])
+        x, y, w, h = box
+        assert rgb.shape[:2] == mask.shape[:2]
+        assert x <= cols.min()
+        assert y <= rows.min()
+        assert x + w >= cols.max()
+        assert y + h >= rows.max()
+    assert _train(dataset, tmp_path / "w", "--amodal", "--frame", "whole") == 0
+    _, info = load_checkpoint(tmp_path / "w" / "needle_seg.pt", "needle_seg")
+    assert info["config"]["frame"] == "whole"
+    assert _train(dataset, tmp_path / "bad", "--frame", "whole") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: ")
+    assert "amodal" in err[-1]
