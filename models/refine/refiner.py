@@ -83,10 +83,17 @@ class Segmenter:
 
 
 def arc_boxes(
-    box_xywh: torch.Tensor, arc: ArcModel, K: np.ndarray, R: np.ndarray, t: np.ndarray
+    box_xywh: torch.Tensor,
+    arc: ArcModel,
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    max_growth: float = 3.0,
 ) -> torch.Tensor:
     """Boxes (n, 4) (x, y, w, h), px, grown to hold the arc projected at the poses ``R``
-    (n, 3, 3), ``t`` (n, 3) mm; a pose that puts the arc behind the camera keeps its box."""
+    (n, 3, 3), ``t`` (n, 3) mm. A pose that puts the arc behind the camera, or whose arc would
+    grow the box's longer side more than ``max_growth`` times (a start far off, where the
+    grown crop would shrink the needle out of the segmenter's reach), keeps its box."""
     X = np.einsum("nij,mj->nmi", R, arc.points(32)) + t[:, None, :]
     z = X[..., 2:]
     uv = (X @ K.T)[..., :2] / np.where(z > 1e-6, z, 1.0)
@@ -94,6 +101,7 @@ def arc_boxes(
     b = box_xywh.detach().cpu().double().numpy()
     lo = np.minimum(b[:, :2], uv.min(axis=1))
     hi = np.maximum(b[:, :2] + b[:, 2:], uv.max(axis=1))
+    ok &= (hi - lo).max(axis=1) <= max_growth * np.maximum(b[:, 2:].max(axis=1), 1.0)
     grown = np.where(ok[:, None], np.concatenate([lo, hi - lo], axis=1), b)
     return torch.as_tensor(grown, dtype=box_xywh.dtype, device=box_xywh.device)
 

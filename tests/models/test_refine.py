@@ -366,6 +366,11 @@ def test_arc_boxes_hold_the_projected_arc_and_skip_poses_behind_the_camera():
     assert grown[0] + grown[2] >= vis[0, 0] + vis[0, 2]  # and keeps the visible box
     behind = arc_boxes(vis, ARC, K, R[None], -t[None])
     assert torch.equal(behind, vis)
+    # a start at 21 mm (all of the arc in front of the camera) would grow the box 7-fold
+    near = t * np.array([1.0, 1.0, 0.25])
+    assert (np.einsum("ij,mj->mi", R, ARC.points(32))[:, 2] + near[2] > 0).all()
+    assert torch.equal(arc_boxes(vis, ARC, K, R[None], near[None]), vis)
+    assert not torch.equal(arc_boxes(vis, ARC, K, R[None], near[None], max_growth=10.0), vis)
 
 
 def test_a_whole_frame_stage_asks_for_evidence_around_the_start_arc():
