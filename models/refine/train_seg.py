@@ -77,6 +77,8 @@ class ContextSet(Sequence[Context]):
         amodal: bool = False,
         whole: bool = False,
     ) -> None:
+        if whole and not amodal:
+            raise ValueError("whole-needle contexts need the full (amodal) mask: set amodal")
         self.dataset, self.records, self.amodal, self.whole = dataset, records, amodal, whole
 
     def __len__(self) -> int:
@@ -97,7 +99,7 @@ class ContextSet(Sequence[Context]):
             paths.append(scene.mask_path(r.im_id, r.gt_id))
         mask = np.stack([load_mask(p).astype(np.uint8) for p in paths], axis=-1)
         x, y, w, h = r.bbox_visib
-        if self.whole and self.amodal:
+        if self.whole:  # the full mask is channel 1
             rows, cols = np.nonzero(mask[..., 1])
             if len(rows):  # BOP boxes: w = x_max - x_min
                 x0, y0 = min(x, int(cols.min())), min(y, int(rows.min()))

@@ -112,6 +112,8 @@ def test_whole_frame_contexts_hold_the_full_mask_and_need_it(dataset, tmp_path, 
     assert _train(dataset, tmp_path / "w", "--amodal", "--frame", "whole") == 0
     _, info = load_checkpoint(tmp_path / "w" / "needle_seg.pt", "needle_seg")
     assert info["config"]["frame"] == "whole"
+    with pytest.raises(ValueError, match="amodal"):
+        load_contexts(ds, ds.scene_ids, 1, False, whole=True)
     assert _train(dataset, tmp_path / "bad", "--frame", "whole") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("error: ")
