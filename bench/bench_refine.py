@@ -153,16 +153,19 @@ def main() -> None:
     opts |= dict(pair.partition("=")[::2] for pair in args.option)
     est = load_estimator("gdrnet", opts)
     settings = fit_settings(args.fit)
-    refiner, whole = None, False  # whole: the oracle frames its ROIs as the segmenter does
+    refiner = None
     if args.segmenter != "none":
         seg = Segmenter(args.segmenter, torch.device("cpu"), args.mask)
-        whole = seg.cfg.frame == "whole"
-        refiner = NeedleRefiner(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings, whole)
+        refiner = NeedleRefiner.for_segmenter(seg, settings)
     oracle_mask = args.mask or (seg.mask if refiner is not None else "visible")
     info = ds.models_info[1]["keypoints"]
     arc = ArcModel.from_keypoints(info["tail"], info["tip"])
     oracle = NeedleRefiner(
-        gt_mask_evidence(np.zeros((1, 1), bool)), arc, ORACLE_GRID, settings=settings, whole=whole
+        gt_mask_evidence(np.zeros((1, 1), bool)),
+        arc,
+        ORACLE_GRID,
+        settings=settings,
+        whole=refiner is not None and refiner.whole,  # framed as the segmenter frames
     )
 
     names = ["before"] + (["after"] if refiner else []) + (["oracle"] if args.oracle else [])

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from bopsurg.errors import BopsurgError
+from bopsurg.geometry import transform_pts
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
 from bopsurg.models.pose.roi import crop
 from bopsurg.models.refine.fit import ArcModel, Evidence, FitSettings, refine_pose
@@ -94,7 +95,7 @@ def arc_boxes(
     (n, 3, 3), ``t`` (n, 3) mm. A pose that puts the arc behind the camera, or whose arc would
     grow the box's longer side more than ``max_growth`` times (a start far off, where the
     grown crop would shrink the needle out of the segmenter's reach), keeps its box."""
-    X = np.einsum("nij,mj->nmi", R, arc.points(32)) + t[:, None, :]
+    X = transform_pts(arc.points(32), R, t)
     z = X[..., 2:]
     uv = (X @ K.T)[..., :2] / np.where(z > 1e-6, z, 1.0)
     ok = (z[..., 0] > 1e-6).all(axis=1) & np.isfinite(uv).all(axis=(1, 2))
@@ -152,7 +153,11 @@ class NeedleRefiner:
         mask: str | None = None,
     ) -> NeedleRefiner:
         """A refiner on the segmenter ``path`` (``mask``: see :class:`Segmenter`)."""
-        seg = Segmenter(path, device, mask)
+        return cls.for_segmenter(Segmenter(path, device, mask), settings)
+
+    @classmethod
+    def for_segmenter(cls, seg: Segmenter, settings: FitSettings | None = None) -> NeedleRefiner:
+        """A refiner on a loaded segmenter: its arc, ROI size, padding and framing."""
         return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings, seg.cfg.frame == "whole")
 
     def grids(self, box_xywh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
