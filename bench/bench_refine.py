@@ -35,7 +35,7 @@ from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.cli.main import main as bopsurg
 from bopsurg.estimation import load_estimator
 from bopsurg.evaluation.summary import format_table
-from bopsurg.models.estimator import SHIPPED
+from bopsurg.models.estimator import REFINE_FIT, SHIPPED
 from bopsurg.models.pose.roi import crop
 from bopsurg.models.refine import ArcModel, FitSettings, NeedleRefiner, Segmenter
 
@@ -59,8 +59,9 @@ def gt_mask_evidence(mask: np.ndarray, full: np.ndarray | None = None):
 
 
 def fit_settings(pairs: list[str]) -> FitSettings:
-    """FitSettings with ``KEY=VALUE`` overrides (ints, floats, 0/1 flags, comma tuples)."""
-    base = FitSettings()
+    """The estimator's fit (:data:`REFINE_FIT`) with ``KEY=VALUE`` overrides (ints, floats,
+    0/1 flags, comma tuples)."""
+    base = REFINE_FIT
     kw: dict = {}
     for pair in pairs:
         key, _, value = pair.partition("=")

@@ -204,6 +204,13 @@ class FitSettings:
     # mm, MSSD 3.41 -> 3.40 mm. 0 turns the guard off.
     min_explained: float = 0.7
     explained_tol_px: float = 1.5
+    # The refiner (:class:`~bopsurg.models.refine.refiner.NeedleRefiner`) resamples the
+    # evidence probabilities this many times finer (bilinear) before the 0.5 threshold: the
+    # outline then falls between grid pixels, where the probabilities cross 0.5, instead of
+    # on the grid, and the wire's width and the arc's size (the depth cues) are read finer.
+    # It pays where the grid is about an image pixel, as the segmenter's is (the estimator's
+    # REFINE_FIT says by how much); 1 uses the grid as it is.
+    evidence_upsample: int = 1
 
 
 @dataclass(frozen=True)

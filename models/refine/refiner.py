@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -107,6 +108,23 @@ def arc_boxes(
     return torch.as_tensor(grown, dtype=box_xywh.dtype, device=box_xywh.device)
 
 
+def upsampled(
+    prob: np.ndarray, factor: int, origin: np.ndarray, step: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Probabilities (S, S) or (C, S, S) on a grid whose pixel (0, 0) sits at image
+    ``origin`` (2,) px, ``step`` image px apart, resampled ``factor`` times finer (bilinear):
+    the fine probabilities, and the fine grid's origin and step. Fine pixel (i, j) sits at
+    coarse ``((j + 0.5) / factor - 0.5, (i + 0.5) / factor - 0.5)`` (OpenCV pixel centres)."""
+    if factor <= 1:
+        return prob, origin, step
+    p = np.asarray(prob, np.float32)
+    flat = p.reshape(-1, *p.shape[-2:])
+    n = p.shape[-1] * factor
+    out = np.stack([cv2.resize(c, (n, n), interpolation=cv2.INTER_LINEAR) for c in flat])
+    fine_origin = np.asarray(origin, float) + step * (0.5 / factor - 0.5)
+    return out.reshape(*p.shape[:-2], n, n), fine_origin, step / factor
+
+
 @dataclass
 class RefineStats:
     """How many ROIs the fit improved, and how many kept the network's pose."""
@@ -189,10 +207,12 @@ class NeedleRefiner:
         s_np = side.detach().cpu().double().numpy()
         R_out, t_out = R.copy(), t.copy()
         changed = np.zeros(len(R), dtype=bool)
+        up = max(1, int(self.settings.evidence_upsample))
         for i in range(len(R)):  # one small least-squares problem per ROI
             step = s_np[i] / self.grid
             origin = c_np[i] - 0.5 * self.grid * step
-            fg = prob[i] > MASK_THRESHOLD
+            p_i, origin, step = upsampled(prob[i], up, origin, step)
+            fg = p_i > MASK_THRESHOLD
             # (2, S, S): visible and full; the full mask bounds the arc, the visible one is
             # what it must explain
             ev = (
