@@ -32,7 +32,10 @@ def test_notebook_runs(path, tmp_path, monkeypatch):
     client = nbclient.NotebookClient(
         nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
     )
-    client.execute(env={**os.environ})
+    # the kernel's temporary files (the notebook's example data) go to this test's tmp_path,
+    # which pytest rotates out (it keeps the last three runs), not to the system's /tmp
+    client.execute(env={**os.environ, "TMPDIR": str(tmp_path)})
+    assert list(tmp_path.glob("bopsurg-notebook-*")), "the notebook wrote no example data here"
     errors = [
         o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"
     ]
