@@ -91,12 +91,16 @@ class Cluster:
             **base,
             "PATH": f"{BIN}:{os.environ['PATH']}",
             "HOME": str(home),
+            # temporary files too (a worker killed mid-load leaves its scene folder), so that
+            # close() removes them with the rest
+            "TMPDIR": str(self.tmp / "tmp"),
             "RAY_USAGE_STATS_ENABLED": "0",
             **auth_env(token),
         }
         self._ns_made = False
         try:
             home.mkdir(parents=True)
+            (self.tmp / "tmp").mkdir()
             subprocess.run(["ip", "netns", "add", self.ns], check=True, capture_output=True)
             self._ns_made = True
             self.sh("ip link set lo up")
