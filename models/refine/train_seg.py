@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask, load_rgb
+from bopsurg.bop.scene import bbox_from_mask
 from bopsurg.errors import BopsurgError
 from bopsurg.models.checkpoint import load_checkpoint, load_weights, save_checkpoint
 from bopsurg.models.data import (
@@ -100,10 +101,10 @@ class ContextSet(Sequence[Context]):
         mask = np.stack([load_mask(p).astype(np.uint8) for p in paths], axis=-1)
         x, y, w, h = r.bbox_visib
         if self.whole:  # the full mask is channel 1
-            rows, cols = np.nonzero(mask[..., 1])
-            if len(rows):  # BOP boxes: w = x_max - x_min
-                x0, y0 = min(x, int(cols.min())), min(y, int(rows.min()))
-                x1, y1 = max(x + w, int(cols.max())), max(y + h, int(rows.max()))
+            fx, fy, fw, fh = bbox_from_mask(mask[..., 1])
+            if fw >= 0:  # not empty
+                x0, y0 = min(x, fx), min(y, fy)
+                x1, y1 = max(x + w, fx + fw), max(y + h, fy + fh)
                 x, y, w, h = x0, y0, x1 - x0, y1 - y0
         s = math.ceil(CONTEXT_RATIO * max(w, h, 1))
         x0, y0 = round(x + w / 2 - s / 2), round(y + h / 2 - s / 2)
