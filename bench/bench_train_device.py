@@ -60,10 +60,12 @@ def run_training(
 
 
 def check_on_cpu(runs: Path, dataset: Path, split: str, device: str) -> str:
-    """Load a device's exported detector and pose head on the CPU and predict one image."""
+    """Load a device's exported detector and pose head on the CPU; run the detector on one
+    image and the pose head on its GT boxes (a few epochs' detector may find nothing)."""
     import torch
 
     from bopsurg.bop.dataset import BopDataset
+    from bopsurg.bop.detections import gt_detections
     from bopsurg.bop.images import load_rgb
     from bopsurg.estimation import load_estimator
 
@@ -74,12 +76,18 @@ def check_on_cpu(runs: Path, dataset: Path, split: str, device: str) -> str:
         "refine": "none",
     }
     est = load_estimator("gdrnet", options)
-    scene = BopDataset(dataset, split).scene(BopDataset(dataset, split).scene_ids[0])
+    ds = BopDataset(dataset, split)
+    scene = ds.scene(ds.scene_ids[0])
     im_id = scene.im_ids[0]
+    rgb, K = load_rgb(scene.rgb_path(im_id)), scene.camera[im_id].K
+    boxes = gt_detections(ds)[(ds.scene_ids[0], im_id)]
     with torch.inference_mode():
-        pred = est.predict(load_rgb(scene.rgb_path(im_id)), scene.camera[im_id].K)
-    finite = all(np.isfinite(p).all() for p in (pred.R, pred.t)) if len(pred) else True
-    return f"{len(pred)} detection(s), finite: {finite}"
+        found = len(est.detect(rgb))
+        pred = est.predict(rgb, K, boxes=boxes)
+    if len(pred) == 0:
+        sys.exit(f"{device}-trained pose head gave no pose on the GT boxes")
+    finite = all(np.isfinite(p).all() for p in (pred.R, pred.t))
+    return f"detector {found} box(es); pose head {len(pred)} pose(s), all finite: {finite}"
 
 
 def main() -> None:
