@@ -54,8 +54,9 @@ from bopsurg.generators.kinematics import (
     psm_tip_pose,
     rot_z,
 )
+from bopsurg.generators.pybullet_scene import pad_height
 from bopsurg.generators.recording import Recording
-from bopsurg.needle import NeedleSpec
+from bopsurg.needle import NeedleSpec, needle_centerline, needle_radius_profile
 
 log = logging.getLogger(__name__)
 
@@ -512,6 +513,20 @@ class _Setup:
     T_lifted: F64
 
 
+def _rest_height(R: F64, at: F64, needle: NeedleSpec) -> float:
+    """Height (m) at which the needle, turned by ``R`` and placed at ``at`` (x, y), lies on the
+    pad: lowered until its wire touches the surface (ridges, undulation; it bridges the
+    incisions) and nowhere below it. At z = 0 a needle beside the wound sank 2.3 mm into a
+    ridge over half its arc, and frames of it at rest were a tail with a speck of tip."""
+    s = np.deg2rad(np.linspace(0.0, needle.total_deg, 64))
+    pts, _ = needle_centerline(needle, s)
+    world = (pts * _MM) @ R.T  # centre line relative to its origin, m
+    x_mm, y_mm = 1e3 * (at[0] + world[:, 0]), 1e3 * (at[1] + world[:, 1])
+    wire = needle_radius_profile(needle, np.rad2deg(s)) * _MM
+    surface = pad_height(x_mm, y_mm) * _MM
+    return float(np.max(surface + wire - world[:, 2]))
+
+
 def _draw_setup(
     rng: np.random.Generator, layout: SceneLayout, needle: NeedleSpec, n_throws: int
 ) -> _Setup:
@@ -530,8 +545,9 @@ def _draw_setup(
     spin = rot_z(np.deg2rad(rng.uniform(-35.0, 35.0)))
     s = first.stitch
     rest_at = s.origin + (rng.uniform(4, 10) * s.x - rng.uniform(4, 10) * s.y) * _MM
-    rest_at[2] += needle.wire_diameter / 2 * _MM
-    T_rest = pose(spin @ lay_flat @ first.T_pre[:3, :3], rest_at)
+    R_rest = spin @ lay_flat @ first.T_pre[:3, :3]
+    rest_at[2] = _rest_height(R_rest, rest_at, needle)
+    T_rest = pose(R_rest, rest_at)
     T_lifted = _translated(T_rest, [0.0, 0.0, rng.uniform(10, 15) * _MM])
     return _Setup(start_q, home, idle_jaw, throws, T_rest, T_lifted)
 

@@ -14,6 +14,7 @@ from bopsurg.generators.kinematics import (
     in_limits,
     psm_tip_pose,
 )
+from bopsurg.generators.pybullet_scene import pad_height
 from bopsurg.generators.trajectory import (
     GRASP_JAW_THRESHOLD,
     TREMOR_HZ,
@@ -23,7 +24,7 @@ from bopsurg.generators.trajectory import (
     needle_grasp,
     synthesize_suturing,
 )
-from bopsurg.needle import NeedleSpec
+from bopsurg.needle import NeedleSpec, needle_radius_profile
 
 ARMS = ("psm1", "psm2")
 
@@ -110,9 +111,14 @@ def test_needle_rests_then_is_attached_to_the_closed_jaw(episode):
     first = np.flatnonzero(held_any)[0]
     assert first > 50
     np.testing.assert_array_equal(needle[:first], needle[:1].repeat(first, axis=0))
-    # at rest: flat on the tissue (model +Z up, the wire's centre one wire radius above z = 0)
+    # at rest: flat on the pad (model +Z up), its wire touching the surface and nowhere in it
     np.testing.assert_allclose(needle[0][:3, 2], [0.0, 0.0, 1.0], atol=1e-9)
-    assert needle[0][2, 3] == pytest.approx(0.36e-3)
+    spec = NeedleSpec()
+    degs = np.linspace(0.0, spec.total_deg, 181)
+    centre = np.stack([_needle_point(episode, d)[0] for d in degs])  # m
+    surface = pad_height(1e3 * centre[:, 0], 1e3 * centre[:, 1]) * 1e-3
+    clearance = centre[:, 2] - needle_radius_profile(spec, degs) * 1e-3 - surface
+    assert clearance.min() == pytest.approx(0.0, abs=2e-5)  # 20 µm: the test's finer sampling
     # after the first grasp the needle is always held by someone
     assert held_any[first:].all()
 
