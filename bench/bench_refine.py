@@ -2,8 +2,9 @@
 
 One pass over the split runs the ``gdrnet`` estimator without refinement (the "before"
 poses: detector + pose head, direct decoding), then the refinement stage on the same image,
-boxes and poses (the "after" poses; the estimator's ``refine=fit`` runs exactly this stage;
-skipped with ``--segmenter none``), and optionally the stage again with the GT masks as
+boxes and poses (the "after" poses: ``GdrNetEstimator.refine_needles``, what the estimator's
+``refine=fit`` runs, re-crops included, ``--option recrop=0`` turns them off; skipped with
+``--segmenter none``), and optionally the stage again with the GT masks as
 evidence (``--oracle``: the fit's ceiling; the full or the visible masks, as ``--mask``
 says). Each set is written as a BOP results CSV and scored by ``bopsurg eval``; it prints
 the paper's table, AR_MSSD / AR_MSPD, the median translation error per camera axis and the
@@ -153,6 +154,7 @@ def main() -> None:
     opts |= {k: v for k, v in (("detector", args.detector), ("pose", args.pose)) if v}
     opts |= dict(pair.partition("=")[::2] for pair in args.option)
     est = load_estimator("gdrnet", opts)
+    head = est.heads[1]
     settings = fit_settings(args.fit)
     refiner = None
     if args.segmenter != "none":
@@ -192,16 +194,18 @@ def main() -> None:
         if args.from_gt:  # one needle per image: its first GT
             g = scene.gt[i][0]
             R0, t0 = np.repeat(g.R[None], len(pred), 0), np.repeat(g.t[None], len(pred), 0)
+        # the estimator's refinement stage (re-crops included, not from a GT start)
+        recrop = 0.0 if args.from_gt else None
         if refiner is not None:
             t2 = time.perf_counter()
-            poses["after"] = refiner(image, K, box, R0, t0)[:2]
+            poses["after"] = est.refine_needles(head, image, K, box, R0, t0, refiner, recrop)[:2]
             ref_ms.append(1000 * (time.perf_counter() - t2))
         if args.oracle:
             visible = load_mask(scene.mask_visib_path(i, 0))
             full = load_mask(scene.mask_path(i, 0)) if oracle_mask == "full" else None
             oracle.evidence = gt_mask_evidence(visible, full)
             t2 = time.perf_counter()
-            poses["oracle"] = oracle(image, K, box, R0, t0)[:2]
+            poses["oracle"] = est.refine_needles(head, image, K, box, R0, t0, oracle, recrop)[:2]
             oracle_ms.append(1000 * (time.perf_counter() - t2))
         for name, (Rn, tn) in poses.items():
             for k in range(len(pred)):

@@ -125,6 +125,43 @@ def upsampled(
     return out.reshape(*p.shape[:-2], n, n), fine_origin, step / factor
 
 
+@dataclass(frozen=True)
+class RoiMasks:
+    """The segmenter's foreground probabilities on the square grids of n ROIs.
+
+    Attributes:
+        prob: (n, S, S) visible mask, or (n, 2, S, S) visible and full (amodal) masks.
+        origin: (n, 2) image px of each grid's pixel (0, 0) (OpenCV pixel centres).
+        step: (n,) image px per grid pixel.
+    """
+
+    prob: np.ndarray
+    origin: np.ndarray
+    step: np.ndarray
+
+    def visible_boxes(self) -> np.ndarray:
+        """(n, 4) boxes (x, y, w, h) of each ROI's visible mask (probability above
+        :data:`MASK_THRESHOLD`), pixel-centre px like the estimator's boxes (x, y: the left and
+        top edges of the first pixel); NaN where the mask is empty."""
+        vis = (self.prob[:, 0] if self.prob.ndim == 4 else self.prob) > MASK_THRESHOLD
+        out = np.full((len(vis), 4), np.nan)
+        rows, cols = vis.any(axis=2), vis.any(axis=1)  # (n, S): rows / columns with foreground
+        some = rows.any(axis=1)
+        idx = np.arange(vis.shape[-1])
+        lo = np.stack([np.where(cols, idx, np.inf).min(1), np.where(rows, idx, np.inf).min(1)], 1)
+        hi = np.stack([np.where(cols, idx, -np.inf).max(1), np.where(rows, idx, -np.inf).max(1)], 1)
+        s = self.step[:, None]
+        out[some, :2] = (self.origin + (lo - 0.5) * s)[some]
+        out[some, 2:] = ((hi - lo + 1.0) * s)[some]
+        return out
+
+    def replaced(self, rows: np.ndarray, other: RoiMasks) -> RoiMasks:
+        """These masks with the ROIs ``rows`` (bool (n,)) taken from ``other`` (their count)."""
+        prob, origin, step = self.prob.copy(), self.origin.copy(), self.step.copy()
+        prob[rows], origin[rows], step[rows] = other.prob, other.origin, other.step
+        return RoiMasks(prob, origin, step)
+
+
 @dataclass
 class RefineStats:
     """How many ROIs the fit improved, and how many kept the network's pose."""
@@ -183,35 +220,34 @@ class NeedleRefiner:
         centre = box_xywh[:, :2] + 0.5 * box_xywh[:, 2:]
         return centre, self.pad * box_xywh[:, 2:].max(dim=1).values.clamp(min=1.0)
 
-    def __call__(
+    def observe(
         self,
         image: torch.Tensor,
         K: np.ndarray,
         box_xywh: torch.Tensor,
         R: np.ndarray,
         t: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Refined (R (n, 3, 3), t (n, 3) mm) and which ROIs changed (n,) bool.
-
-        Args:
-            image: (1, 3, H, W) float RGB in [0, 1].
-            K: (3, 3) intrinsics, px.
-            box_xywh: (n, 4) boxes (x, y, w, h), pixel-centre px.
-            R, t: the pose head's estimates, float64.
-        """
+    ) -> RoiMasks:
+        """The segmenter's masks on the ROI grids of boxes (x, y, w, h), pixel-centre px (the
+        poses ``R`` (n, 3, 3), ``t`` (n, 3) mm only frame a ``whole`` segmenter's ROI)."""
         if self.whole:
             box_xywh = arc_boxes(box_xywh, self.arc, np.asarray(K, float), R, t)
         centre, side = self.grids(box_xywh)
         prob = self.evidence(image, centre, side, self.grid)
         c_np = centre.detach().cpu().double().numpy()
-        s_np = side.detach().cpu().double().numpy()
+        step = side.detach().cpu().double().numpy() / self.grid
+        return RoiMasks(np.asarray(prob), c_np - 0.5 * self.grid * step[:, None], step)
+
+    def fit(
+        self, masks: RoiMasks, K: np.ndarray, R: np.ndarray, t: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Poses (R (n, 3, 3), t (n, 3) mm) fitted to ``masks`` from the pose head's, and
+        which ROIs changed (n,) bool."""
         R_out, t_out = R.copy(), t.copy()
         changed = np.zeros(len(R), dtype=bool)
         up = max(1, int(self.settings.evidence_upsample))
         for i in range(len(R)):  # one small least-squares problem per ROI
-            step = s_np[i] / self.grid
-            origin = c_np[i] - 0.5 * self.grid * step
-            p_i, origin, step = upsampled(prob[i], up, origin, step)
+            p_i, origin, step = upsampled(masks.prob[i], up, masks.origin[i], masks.step[i])
             fg = p_i > MASK_THRESHOLD
             # (2, S, S): visible and full; the full mask bounds the arc, the visible one is
             # what it must explain
@@ -225,3 +261,22 @@ class NeedleRefiner:
         self.stats.refined += int(changed.sum())
         self.stats.kept += int((~changed).sum())
         return R_out, t_out, changed
+
+    def __call__(
+        self,
+        image: torch.Tensor,
+        K: np.ndarray,
+        box_xywh: torch.Tensor,
+        R: np.ndarray,
+        t: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Refined (R (n, 3, 3), t (n, 3) mm) and which ROIs changed (n,) bool:
+        :meth:`observe`, then :meth:`fit`.
+
+        Args:
+            image: (1, 3, H, W) float RGB in [0, 1].
+            K: (3, 3) intrinsics, px.
+            box_xywh: (n, 4) boxes (x, y, w, h), pixel-centre px.
+            R, t: the pose head's estimates, float64.
+        """
+        return self.fit(self.observe(image, K, box_xywh, R, t), K, R, t)

@@ -450,3 +450,67 @@ def test_a_whole_frame_stage_asks_for_evidence_around_the_start_arc():
     assert s_whole[0] > s_box[0]
     assert changed[0]
     assert metrics.te(t_whole, t[None])[0] < 2.0  # from 3 mm
+
+
+def test_visible_boxes_frame_each_roi_mask_in_image_px():
+    from bopsurg.models.refine.refiner import RoiMasks
+
+    prob = np.zeros((3, 2, 32, 32))
+    prob[0, 0, 10:20, 5:25] = 0.9  # rows 10..19, columns 5..24 of the visible mask
+    prob[0, 1] = 0.9  # the full mask does not count
+    prob[2, 0, 0, 31] = 0.6  # one pixel
+    masks = RoiMasks(
+        prob, np.array([[100.0, 50.0], [0.0, 0.0], [10.0, 20.0]]), np.array([2.0, 1, 0.5])
+    )
+    boxes = masks.visible_boxes()
+    # pixel-centre px: the first pixel's left edge is half a grid step before its centre
+    np.testing.assert_allclose(boxes[0], [109.0, 69.0, 40.0, 20.0])
+    assert np.isnan(boxes[1]).all()  # nothing seen
+    np.testing.assert_allclose(boxes[2], [25.25, 19.75, 0.5, 0.5])
+    one = RoiMasks(prob[:, 0], masks.origin, masks.step)  # a visible-only segmenter
+    np.testing.assert_allclose(one.visible_boxes()[0], boxes[0])
+    swapped = masks.replaced(
+        np.array([False, True, False]), RoiMasks(prob[:1], masks.origin[:1], masks.step[:1])
+    )
+    np.testing.assert_allclose(swapped.visible_boxes()[1], boxes[0])
+
+
+def test_grown_boxes_take_the_union_only_where_it_grows_enough():
+    from bopsurg.models.estimator import grown_boxes
+
+    boxes = np.array([[100.0, 100, 40, 20], [100, 100, 40, 20], [100, 100, 40, 20]])
+    seen = np.array([[90.0, 105, 80, 10], [102, 98, 40, 24], [np.nan] * 4])
+    grown, did = grown_boxes(boxes, seen, 1.1)
+    np.testing.assert_array_equal(did, [True, False, False])
+    np.testing.assert_allclose(grown[0], [90.0, 100, 80, 20])  # 40 -> 80 px: the union
+    np.testing.assert_allclose(grown[1:], boxes[1:])  # 42/40 < 1.1, and nothing seen
+
+
+def test_the_stage_recrops_a_box_that_holds_part_of_the_needle():
+    """The detector boxed the needle's left part: the stage runs the ROI again on the box grown
+    to all the segmenter saw (here: the exact silhouette) while that grows it enough."""
+    from bopsurg.models.estimator import RECROP_GROWTH
+
+    R, t = _pose(20.0, 0.0, (0.0, 0.0, 80.0))  # wider than high: the box's width leads
+    mask = _silhouette(R, t)
+    ys, xs = np.nonzero(mask)
+    whole = np.array([xs.min() - 0.5, ys.min() - 0.5, np.ptp(xs) + 1.0, np.ptp(ys) + 1.0])
+    part = whole.copy()
+    part[2] *= 0.6  # the left 60 %
+    est = create({"no_detector": "1", "refine": "none", "device": "cpu"})
+    stage = NeedleRefiner(_mask_source(mask), ARC, 192, settings=REFINE_FIT)
+    box = torch.tensor(part[None], dtype=torch.float32)
+    R0, t0 = _perturbed(R, t)
+    args = (est.heads[1], torch.zeros(1, 3, 480, 640), K, box, R0[None], t0[None], stage)
+    R1, t1, boxes, grew = est.refine_needles(*args)
+    assert grew[0]
+    assert est.recropped == 2  # each pass sees a quarter of the box more on each side
+    # grown until the next pass would add less than RECROP_GROWTH: most of the needle
+    assert whole[2] / RECROP_GROWTH - 1.0 <= boxes[0, 2] <= whole[2] + 1.0
+    np.testing.assert_allclose(boxes[0, [0, 1, 3]], whole[[0, 1, 3]], atol=1.5)
+    assert np.isfinite(R1).all()
+    assert np.isfinite(t1).all()
+    _, _, boxes2, grew2 = est.refine_needles(*args, recrop=0.0)
+    assert not grew2[0]
+    np.testing.assert_allclose(boxes2[0], part, atol=1e-4)
+    assert est.recropped == 2
