@@ -201,7 +201,7 @@ class GdrNetEstimator:
         if not (np.isfinite(recrop) and (recrop == 0 or recrop >= 1)):
             raise BopsurgError(f"gdrnet: recrop must be 0 (off) or a growth >= 1, got {recrop}")
         self.recrop = float(recrop)
-        #: ROIs run again on a box grown to the segmenter's visible mask (``recrop``).
+        #: ROIs whose pose comes from a box grown to the segmenter's visible mask (``recrop``).
         self.recropped = 0
         self.device = resolve_device(device)
         self.detector = None if detector is None else Detector(detector, self.device)
@@ -307,7 +307,8 @@ class GdrNetEstimator:
         """The refinement stage of needle ROIs: the segmenter's masks around each box, the ROI
         run again (pose head and segmenter) on a box grown to its visible mask while that
         grows the box by ``recrop`` (:data:`RECROP_GROWTH`, at most :data:`RECROP_PASSES`
-        times), then the fit from the pose head's pose.
+        times), then the fit from the pose head's pose; a re-cropped ROI whose fit the fit's
+        out-of-domain guard refuses gets the fit on its first box instead.
 
         Args:
             head: The needle's pose head.
@@ -332,6 +333,7 @@ class GdrNetEstimator:
         K_b = torch.as_tensor(K, dtype=torch.float32, device=self.device)[None]
         masks = refiner.observe(image, K, box_xywh, R, t)
         boxes = box_xywh.detach().cpu().double().numpy()
+        first = (R.copy(), t.copy(), masks, boxes)  # what a refused re-crop falls back to
         grew = np.zeros(len(R), dtype=bool)
         todo = np.ones(len(R), dtype=bool)  # ROIs whose box may still grow
         for _ in range(RECROP_PASSES if recrop > 0 else 0):
@@ -344,8 +346,16 @@ class GdrNetEstimator:
             R[redo], t[redo] = self._head_poses(head, image, K_b.expand(len(g), 3, 3), g)
             masks = masks.replaced(redo, refiner.observe(image, K, g, R[redo], t[redo]))
             boxes, todo, grew = np.where(redo[:, None], grown, boxes), redo, grew | redo
-            self.recropped += int(redo.sum())
-        R, t, _ = refiner.fit(masks, K, R, t)
+        R, t, fitted = refiner.fit(masks, K, R, t)
+        # A re-crop whose fit the out-of-domain guard refused (the grown mask holds what the
+        # wire cannot explain: an instrument, a groove) is undone: the first box's fit.
+        back = grew & ~fitted
+        if back.any():
+            R0, t0, masks0, boxes0 = first
+            refiner.stats.kept -= int(back.sum())  # counted again by the fit below
+            R[back], t[back], _ = refiner.fit(masks0.subset(back), K, R0[back], t0[back])
+            boxes[back], grew[back] = boxes0[back], False
+        self.recropped += int(grew.sum())
         return R, t, boxes, grew
 
     def _head_poses(

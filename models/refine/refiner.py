@@ -155,6 +155,10 @@ class RoiMasks:
         out[some, 2:] = ((hi - lo + 1.0) * s)[some]
         return out
 
+    def subset(self, rows: np.ndarray) -> RoiMasks:
+        """The masks of the ROIs ``rows`` (a bool (n,) mask or indices)."""
+        return RoiMasks(self.prob[rows], self.origin[rows], self.step[rows])
+
     def replaced(self, rows: np.ndarray, other: RoiMasks) -> RoiMasks:
         """These masks with the ROIs ``rows`` (bool (n,)) taken from ``other`` (their count)."""
         prob, origin, step = self.prob.copy(), self.origin.copy(), self.step.copy()

@@ -486,31 +486,71 @@ def test_grown_boxes_take_the_union_only_where_it_grows_enough():
     np.testing.assert_allclose(grown[1:], boxes[1:])  # 42/40 < 1.1, and nothing seen
 
 
-def test_the_stage_recrops_a_box_that_holds_part_of_the_needle():
-    """The detector boxed the needle's left part: the stage runs the ROI again on the box grown
-    to all the segmenter saw (here: the exact silhouette) while that grows it enough."""
-    from bopsurg.models.estimator import RECROP_GROWTH
-
+def _recrop_case(monkeypatch, extra: np.ndarray | None = None):
+    """A needle whose detection box holds its left 60 %, the stage on its exact silhouette
+    (plus ``extra`` foreground), and a pose head that answers every box with the pose 3 mm /
+    5° off: (estimator, stage arguments, GT t, the whole needle's box, the detection box)."""
     R, t = _pose(20.0, 0.0, (0.0, 0.0, 80.0))  # wider than high: the box's width leads
     mask = _silhouette(R, t)
     ys, xs = np.nonzero(mask)
     whole = np.array([xs.min() - 0.5, ys.min() - 0.5, np.ptp(xs) + 1.0, np.ptp(ys) + 1.0])
     part = whole.copy()
-    part[2] *= 0.6  # the left 60 %
+    part[2] *= 0.6
     est = create({"no_detector": "1", "refine": "none", "device": "cpu"})
-    stage = NeedleRefiner(_mask_source(mask), ARC, 192, settings=REFINE_FIT)
-    box = torch.tensor(part[None], dtype=torch.float32)
     R0, t0 = _perturbed(R, t)
+    heads = []
+
+    def head_poses(head, image, K_b, box):
+        heads.append(box.numpy().copy())
+        return np.repeat(R0[None], len(box), 0), np.repeat(t0[None], len(box), 0)
+
+    monkeypatch.setattr(est, "_head_poses", head_poses)
+    source = _mask_source(mask if extra is None else mask | extra)
+    stage = NeedleRefiner(source, ARC, 192, settings=REFINE_FIT)
+    box = torch.tensor(part[None], dtype=torch.float32)
     args = (est.heads[1], torch.zeros(1, 3, 480, 640), K, box, R0[None], t0[None], stage)
-    R1, t1, boxes, grew = est.refine_needles(*args)
+    return est, args, t, whole, part, heads
+
+
+def test_the_stage_recrops_a_box_that_holds_part_of_the_needle(monkeypatch):
+    """The detector boxed the needle's left part: the stage runs the pose head and the
+    segmenter again on the box grown to all the segmenter saw, while that grows it enough."""
+    from bopsurg.models.estimator import RECROP_GROWTH
+
+    est, args, t, whole, part, heads = _recrop_case(monkeypatch)
+    _, t1, boxes, grew = est.refine_needles(*args)
     assert grew[0]
-    assert est.recropped == 2  # each pass sees a quarter of the box more on each side
+    assert len(heads) == 2  # each pass sees a quarter of the box more on each side
     # grown until the next pass would add less than RECROP_GROWTH: most of the needle
     assert whole[2] / RECROP_GROWTH - 1.0 <= boxes[0, 2] <= whole[2] + 1.0
     np.testing.assert_allclose(boxes[0, [0, 1, 3]], whole[[0, 1, 3]], atol=1.5)
-    assert np.isfinite(R1).all()
-    assert np.isfinite(t1).all()
-    _, _, boxes2, grew2 = est.refine_needles(*args, recrop=0.0)
+    np.testing.assert_allclose(heads[-1][0], boxes[0], atol=1e-3)  # the head saw that box
+    assert est.recropped == 1
+    _, t2, boxes2, grew2 = est.refine_needles(*args, recrop=0.0)
+    # the whole silhouette pins the pose, its left part misleads the fit (here 1.8 against
+    # 3.6 mm; the start is 3 mm off)
+    te_whole, te_part = metrics.te(t1, t[None])[0], metrics.te(t2, t[None])[0]
+    assert te_whole < 3.0
+    assert te_whole < te_part
     assert not grew2[0]
     np.testing.assert_allclose(boxes2[0], part, atol=1e-4)
-    assert est.recropped == 2
+    assert est.recropped == 1
+
+
+def test_a_recrop_onto_what_the_wire_cannot_explain_is_undone(monkeypatch):
+    """The segmenter also marks a slab beside the needle (an instrument): the grown box holds
+    it, the fit there leaves it unexplained and is refused, and the first box's fit stands."""
+    slab = np.zeros((480, 640), bool)
+    _, _, _, whole, part, _ = _recrop_case(monkeypatch)
+    x1 = int(part[0] + part[2])
+    slab[int(whole[1]) : int(whole[1] + whole[3]), x1 + 2 : x1 + 120] = True
+    est, args, _, whole, part, heads = _recrop_case(monkeypatch, extra=slab)
+    stage = args[-1]
+    R1, t1, boxes, grew = est.refine_needles(*args)
+    assert len(heads) >= 1  # it re-cropped ...
+    assert not grew[0]  # ... and undid it
+    np.testing.assert_allclose(boxes[0], part, atol=1e-4)
+    assert est.recropped == 0
+    assert stage.stats.refined + stage.stats.kept == 1  # one ROI, counted once
+    assert np.isfinite(R1).all()
+    assert np.isfinite(t1).all()
