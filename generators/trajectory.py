@@ -516,8 +516,8 @@ class _Setup:
 def _rest_height(R: F64, at: F64, needle: NeedleSpec) -> float:
     """Height (m) at which the needle, turned by ``R`` and placed at ``at`` (x, y), lies on the
     pad: lowered until its wire touches the surface (ridges, undulation; it bridges the
-    incisions) and nowhere below it. At z = 0 a needle beside the wound sank 2.3 mm into a
-    ridge over half its arc, and frames of it at rest were a tail with a speck of tip."""
+    incisions) and nowhere below it. At z = 0 a needle beside the wound sank up to 0.8 mm
+    into a ridge over half its arc, and frames of it at rest were a tail with a speck of tip."""
     s = np.deg2rad(np.linspace(0.0, needle.total_deg, 64))
     pts, _ = needle_centerline(needle, s)
     world = (pts * _MM) @ R.T  # centre line relative to its origin, m
