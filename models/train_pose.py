@@ -28,6 +28,7 @@ from bopsurg.geometry import rotation_about_axis
 from bopsurg.models import training
 from bopsurg.models.data import BatchReader, PoseBatch, PoseSet, load_pose_set
 from bopsurg.models.detector.augment import hsv_jitter
+from bopsurg.models.mirror import mirror_batch
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.pose.config import TRAINING_ONLY, PoseConfig
 from bopsurg.models.pose.decode import pose_from_output
@@ -59,6 +60,9 @@ class PoseRecipe:
     val_every: int = 5
     symmetric: bool = False
     augment: PhotometricConfig = field(default_factory=PhotometricConfig)
+    #: Share of the samples shown mirrored (:func:`bopsurg.models.mirror.mirror_batch`: the
+    #: needle's other face, exactly); 0 draws nothing, so older recipes train as before.
+    mirror: float = 0.0
     #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
@@ -324,6 +328,9 @@ def _step_fn(
     syms = None if geo.sym_rotations is None else geo.sym_rotations.to(dev)
 
     def step(batch: PoseBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
+        if recipe.mirror > 0:  # drawn from the run's generator: resumable and deterministic
+            u = torch.rand(len(batch.idx), generator=gen, device=gen.device)
+            batch = mirror_batch(batch, (u < recipe.mirror).cpu())
         seeds = batch_seeds(seed, epoch, batch.idx)
         roi_img, coord2d, target = roi_batch(
             batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds

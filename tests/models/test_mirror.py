@@ -1,0 +1,108 @@
+"""The mirror augmentation shows the needle's other face, exactly (pixels, pose, coordinates)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from bopsurg.bop.dataset import BopDataset  # noqa: E402
+from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
+from bopsurg.models.data import load_pose_set  # noqa: E402
+from bopsurg.models.mirror import mirror_batch  # noqa: E402
+from tests.models.plane_depth import write_plane_depth  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def batch(tmp_path_factory):
+    """Every needle of a small example split (depth: a plane at the needle), one batch."""
+    root = tmp_path_factory.mktemp("mirror")
+    ex = write_example_dataset(root, ExampleSpec(seed=4, scenes=2, images_per_scene=4))
+    write_plane_depth(BopDataset(ex.root, ex.split))
+    data = load_pose_set(BopDataset(ex.root, ex.split), [1, 2], 1, context=128, cache_mb=0)
+    n = len(data)
+    return data.collate([data[i] for i in range(n)], list(range(n)))
+
+
+def _reprojection_px(b) -> np.ndarray:
+    """Per sample, the largest distance (px) between a visible context pixel's image position
+    and the projection of its object coordinates at the sample's pose."""
+    C = b.rgb.shape[-1]
+    out = []
+    for k in range(len(b.idx)):
+        i, j = np.nonzero(b.mask[k].numpy())
+        a, c0x, c0y = (float(v) for v in b.ctx[k])
+        img = np.stack([(j - C / 2) / a + c0x, (i - C / 2) / a + c0y], 1)
+        X = b.xyz[k].float().numpy()[:, i, j].T
+        cam = X @ b.R[k].double().numpy().T + b.t[k].double().numpy()
+        uv = cam @ b.K[k].double().numpy().T
+        out.append(np.abs(uv[:, :2] / uv[:, 2:] - img).max())
+    return np.array(out)
+
+
+def test_the_mirrored_samples_show_their_pixels_where_their_pose_puts_them(batch):
+    assert len(batch.idx) >= 4
+    # the data's own consistency: the coordinates are sampled nearest, so a context pixel
+    # holds its nearest image pixel's point, up to half an image pixel away
+    before = _reprojection_px(batch)
+    assert before.max() < 0.51
+    flip = torch.arange(len(batch.idx)) % 2 == 0
+    m = mirror_batch(batch, flip)
+    # mirrored exactly: every pixel keeps its error, mirrored (one context pixel off, 1/a
+    # image px, would add about a pixel)
+    np.testing.assert_allclose(_reprojection_px(m), before, atol=1e-3)
+    # the flipped ones moved: their image columns mirrored about c_x
+    assert not torch.equal(m.rgb[flip], batch.rgb[flip])
+    assert torch.equal(m.rgb[~flip], batch.rgb[~flip])
+    assert torch.equal(m.R[~flip], batch.R[~flip])
+
+
+def test_the_mirror_shows_the_other_face_with_a_proper_rotation(batch):
+    flip = torch.ones(len(batch.idx), dtype=torch.bool)
+    m = mirror_batch(batch, flip)
+    det = torch.linalg.det(m.R.double())
+    np.testing.assert_allclose(det.numpy(), 1.0, atol=1e-5)
+    n, n2 = batch.R[:, :, 2].double(), m.R[:, :, 2].double()  # the arc normals (model +Z)
+    v = batch.t.double() / batch.t.double().norm(dim=1, keepdim=True)
+    v2 = m.t.double() / m.t.double().norm(dim=1, keepdim=True)
+    np.testing.assert_allclose((n2 * v2).sum(1).numpy(), -(n * v).sum(1).numpy(), atol=1e-5)
+    # the visible box mirrors with the pixels: its column span is the mask's
+    C = batch.rgb.shape[-1]
+    for k in range(len(m.idx)):
+        cols = np.nonzero(m.mask[k].numpy().any(0))[0]
+        a, c0x = float(m.ctx[k, 0]), float(m.ctx[k, 1])
+        left = (cols.min() - C / 2) / a + c0x
+        assert abs(left - float(m.bbox[k, 0])) < 1.0 / a + 1e-3
+    back = mirror_batch(m, flip)  # twice is the identity
+    for name in ("rgb", "mask", "xyz"):
+        assert torch.equal(getattr(back, name), getattr(batch, name))
+    for name in ("ctx", "bbox", "R", "t"):
+        np.testing.assert_allclose(
+            getattr(back, name).numpy(), getattr(batch, name).numpy(), atol=1e-4
+        )
+
+
+def test_a_run_with_mirrored_samples_is_configured_recorded_and_deterministic(tmp_path):
+    import yaml
+
+    from bopsurg.cli.main import main
+    from bopsurg.example import ExampleSpec, write_example_dataset
+    from bopsurg.models.checkpoint import load_tensors
+
+    root = write_example_dataset(tmp_path / "d", ExampleSpec(seed=1, scenes=2, images_per_scene=4))
+    write_plane_depth(BopDataset(root.root, root.split))
+    weights = {}
+    for name, mirror in (("a", 0.5), ("b", 0.5), ("off", 0.0)):
+        cfg = tmp_path / f"{name}.yaml"
+        cfg.write_text(
+            f"preset: test\nrecipe: {{epochs: 1, batch_size: 4, val_every: 1, mirror: {mirror}}}\n"
+        )
+        out = tmp_path / name
+        args = ["train", "pose", str(root.root), "--split", root.split, "--out", str(out)]
+        assert main([*args, "--config", str(cfg), "--no-progress", "--threads", "1"]) == 0
+        weights[name] = load_tensors(out / "pose.pt")
+        written = yaml.safe_load((out / "config.yaml").read_text())
+        assert written["recipe"]["mirror"] == mirror
+    assert all(torch.equal(weights["a"][k], weights["b"][k]) for k in weights["a"])
+    assert any(not torch.equal(weights["a"][k], weights["off"][k]) for k in weights["a"])
