@@ -44,18 +44,17 @@ def mirror_batch(batch: PoseBatch, flip: torch.Tensor) -> PoseBatch:
         shape = (-1,) + (1,) * (x.dim() - 1)
         return torch.where(f.view(shape), x.flip(-1), x)
 
-    xyz = flipped(batch.xyz)
-    xyz = torch.cat([xyz[:, :2], torch.where(f[:, None, None], -xyz[:, 2], xyz[:, 2])[:, None]], 1)
     ctx = batch.ctx.clone()
     ctx[:, 1] = torch.where(f, 2.0 * cx - batch.ctx[:, 1] + 1.0 / a, batch.ctx[:, 1])
     bbox = batch.bbox.clone()
     bbox[:, 0] = torch.where(f, 2.0 * cx - batch.bbox[:, 0] - batch.bbox[:, 2] + 1.0, bbox[:, 0])
-    sign = torch.ones(3, dtype=batch.R.dtype, device=batch.R.device)
-    F = torch.where(f[:, None], sign * torch.tensor([-1.0, 1.0, 1.0]), sign)  # (B, 3)
-    M = torch.where(f[:, None], sign * torch.tensor([1.0, 1.0, -1.0]), sign)
+    # the diagonals of F (camera) and M (model), per sample; identity where not flipped
+    one = torch.ones(len(f), 3, dtype=batch.R.dtype, device=batch.R.device)
+    F, M = one.clone(), one.clone()
+    F[f, 0], M[f, 2] = -1.0, -1.0
     R = F[:, :, None] * batch.R * M[:, None, :]
-    t = F * batch.t
+    xyz = flipped(batch.xyz) * M.to(batch.xyz.dtype)[:, :, None, None]  # model x -> M x
     return dataclasses.replace(
         batch, rgb=flipped(batch.rgb), mask=flipped(batch.mask), xyz=xyz, ctx=ctx, bbox=bbox,
-        R=R, t=t,
+        R=R, t=F * batch.t,
     )  # fmt: skip

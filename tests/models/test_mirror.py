@@ -87,7 +87,6 @@ def test_a_run_with_mirrored_samples_is_configured_recorded_and_deterministic(tm
     import yaml
 
     from bopsurg.cli.main import main
-    from bopsurg.example import ExampleSpec, write_example_dataset
     from bopsurg.models.checkpoint import load_tensors
 
     root = write_example_dataset(tmp_path / "d", ExampleSpec(seed=1, scenes=2, images_per_scene=4))
