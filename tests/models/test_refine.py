@@ -486,16 +486,19 @@ def test_grown_boxes_take_the_union_only_where_it_grows_enough():
     np.testing.assert_allclose(grown[1:], boxes[1:])  # 42/40 < 1.1, and nothing seen
 
 
-def _recrop_case(monkeypatch, extra: np.ndarray | None = None):
+def _recrop_case(monkeypatch, extra=None):
     """A needle whose detection box holds its left 60 %, the stage on its exact silhouette
-    (plus ``extra`` foreground), and a pose head that answers every box with the pose 3 mm /
-    5° off: (estimator, stage arguments, GT t, the whole needle's box, the detection box)."""
+    (plus the foreground ``extra(whole, part)`` returns), and a pose head that answers every
+    box with the pose 3 mm / 5° off: (estimator, ``refine_needles`` arguments, GT t, the whole
+    needle's box, the detection box, the boxes the pose head saw)."""
     R, t = _pose(20.0, 0.0, (0.0, 0.0, 80.0))  # wider than high: the box's width leads
     mask = _silhouette(R, t)
     ys, xs = np.nonzero(mask)
     whole = np.array([xs.min() - 0.5, ys.min() - 0.5, np.ptp(xs) + 1.0, np.ptp(ys) + 1.0])
     part = whole.copy()
     part[2] *= 0.6
+    if extra is not None:
+        mask = mask | extra(whole, part)
     est = create({"no_detector": "1", "refine": "none", "device": "cpu"})
     R0, t0 = _perturbed(R, t)
     heads = []
@@ -505,8 +508,7 @@ def _recrop_case(monkeypatch, extra: np.ndarray | None = None):
         return np.repeat(R0[None], len(box), 0), np.repeat(t0[None], len(box), 0)
 
     monkeypatch.setattr(est, "_head_poses", head_poses)
-    source = _mask_source(mask if extra is None else mask | extra)
-    stage = NeedleRefiner(source, ARC, 192, settings=REFINE_FIT)
+    stage = NeedleRefiner(_mask_source(mask), ARC, 192, settings=REFINE_FIT)
     box = torch.tensor(part[None], dtype=torch.float32)
     args = (est.heads[1], torch.zeros(1, 3, 480, 640), K, box, R0[None], t0[None], stage)
     return est, args, t, whole, part, heads
@@ -540,11 +542,14 @@ def test_the_stage_recrops_a_box_that_holds_part_of_the_needle(monkeypatch):
 def test_a_recrop_onto_what_the_wire_cannot_explain_is_undone(monkeypatch):
     """The segmenter also marks a slab beside the needle (an instrument): the grown box holds
     it, the fit there leaves it unexplained and is refused, and the first box's fit stands."""
-    slab = np.zeros((480, 640), bool)
-    _, _, _, whole, part, _ = _recrop_case(monkeypatch)
-    x1 = int(part[0] + part[2])
-    slab[int(whole[1]) : int(whole[1] + whole[3]), x1 + 2 : x1 + 120] = True
-    est, args, _, whole, part, heads = _recrop_case(monkeypatch, extra=slab)
+
+    def slab(whole, part):  # beside the box's right edge, as high as the needle
+        out = np.zeros((480, 640), bool)
+        x1 = int(part[0] + part[2])
+        out[int(whole[1]) : int(whole[1] + whole[3]), x1 + 2 : x1 + 120] = True
+        return out
+
+    est, args, _, _, part, heads = _recrop_case(monkeypatch, extra=slab)
     stage = args[-1]
     R1, t1, boxes, grew = est.refine_needles(*args)
     assert len(heads) >= 1  # it re-cropped ...
