@@ -328,12 +328,12 @@ class GdrNetEstimator:
         if refiner is None:
             raise BopsurgError("gdrnet: no refinement stage (no segmenter loaded)")
         recrop = self.recrop if recrop is None else recrop
-        R, t = R.copy(), t.copy()
         K = np.asarray(K, float)
         K_b = torch.as_tensor(K, dtype=torch.float32, device=self.device)[None]
         masks = refiner.observe(image, K, box_xywh, R, t)
         boxes = box_xywh.detach().cpu().double().numpy()
-        first = (R.copy(), t.copy(), masks, boxes)  # what a refused re-crop falls back to
+        first = (R, t, masks, boxes)  # what a refused re-crop falls back to
+        R, t = R.copy(), t.copy()  # the re-crops write into these
         grew = np.zeros(len(R), dtype=bool)
         todo = np.ones(len(R), dtype=bool)  # ROIs whose box may still grow
         for _ in range(RECROP_PASSES if recrop > 0 else 0):
