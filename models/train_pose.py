@@ -24,9 +24,16 @@ import torch
 
 from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.errors import BopsurgError
 from bopsurg.geometry import rotation_about_axis
 from bopsurg.models import training
-from bopsurg.models.data import BatchReader, PoseBatch, PoseSet, load_pose_set
+from bopsurg.models.data import (
+    SCENE_ID_STRIDE,
+    BatchReader,
+    PoseBatch,
+    PoseSet,
+    load_pose_set,
+)
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.mirror import mirror_batch
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
@@ -63,6 +70,10 @@ class PoseRecipe:
     #: Share of the samples shown mirrored (:func:`bopsurg.models.mirror.mirror_batch`: the
     #: needle's other face, exactly); 0 draws nothing, so older recipes train as before.
     mirror: float = 0.0
+    #: The splits (names of a comma-separated ``--split``) whose samples may be mirrored;
+    #: empty = all. Mirroring only the splits that carry a cue to the face (a suture thread
+    #: at the tail: ``--domain wide``) keeps what the others teach about their usual face.
+    mirror_splits: tuple[str, ...] = ()
     #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
@@ -282,7 +293,12 @@ def train_pose(
     legacy_cfg = replace(preset_cfg, symmetric=cfg.symmetric)  # runs before config files
     legacy = {
         "model": legacy_cfg.to_dict(),
-        "recipe": {"augment": asdict(PhotometricConfig()), "init": ""},
+        "recipe": {
+            "augment": asdict(PhotometricConfig()),
+            "init": "",
+            "mirror": 0.0,
+            "mirror_splits": [],
+        },
     }
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
     write_config(out, resolved("pose", preset, seed, cfg, recipe, loader))
@@ -306,13 +322,36 @@ def train_pose(
         )
     model = model.to(dev)
     export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
-    step = _step_fn(model, cfg, geo, recipe, dev, seed)
+    mirrorable = _mirrorable(train, ds, recipe.mirror_splits)
+    step = _step_fn(model, cfg, geo, recipe, dev, seed, mirrorable)
     return training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export,
         device=dev, progress=progress,
         load=BatchReader(train, train.collate, loader.num_workers),
     )  # fmt: skip
+
+
+def _mirrorable(
+    train: PoseSet, dataset: BopDataset, splits: tuple[str, ...]
+) -> torch.Tensor | None:
+    """(N,) bool: which training samples lie in ``splits`` (None: every split may mirror).
+
+    Raises:
+        BopsurgError: A split in ``splits`` is not one of the training splits.
+    """
+    if not splits:
+        return None
+    names = dataset.split.split(",")  # the k-th split's scenes are k * SCENE_ID_STRIDE + s
+    unknown = sorted(set(splits) - set(names))
+    if unknown:
+        raise BopsurgError(
+            f"recipe.mirror_splits: {', '.join(unknown)} not among the training splits "
+            f"({dataset.split})"
+        )
+    k = np.array([r.scene_id // SCENE_ID_STRIDE for r in train.records], dtype=np.int64)
+    chosen = np.array([n in splits for n in names])
+    return torch.from_numpy(chosen[k])
 
 
 def _step_fn(
@@ -322,6 +361,7 @@ def _step_fn(
     recipe: PoseRecipe,
     dev: torch.device,
     seed: int,
+    mirrorable: torch.Tensor | None = None,
 ) -> training.StepFn:
     """The pose head's training step: jittered ROIs of a batch, the GDR-Net losses."""
     points = geo.points.to(dev)
@@ -330,7 +370,10 @@ def _step_fn(
     def step(batch: PoseBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
         if recipe.mirror > 0:  # drawn from the run's generator: resumable and deterministic
             u = torch.rand(len(batch.idx), generator=gen, device=gen.device)
-            batch = mirror_batch(batch, (u < recipe.mirror).cpu())
+            flip = (u < recipe.mirror).cpu()
+            if mirrorable is not None:
+                flip &= mirrorable[batch.idx]
+            batch = mirror_batch(batch, flip)
         seeds = batch_seeds(seed, epoch, batch.idx)
         roi_img, coord2d, target = roi_batch(
             batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds

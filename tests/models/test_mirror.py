@@ -105,3 +105,25 @@ def test_a_run_with_mirrored_samples_is_configured_recorded_and_deterministic(tm
         assert written["recipe"]["mirror"] == mirror
     assert all(torch.equal(weights["a"][k], weights["b"][k]) for k in weights["a"])
     assert any(not torch.equal(weights["a"][k], weights["off"][k]) for k in weights["a"])
+
+
+def test_mirror_splits_picks_the_samples_of_the_named_splits_and_refuses_others(tmp_path):
+    import shutil
+
+    from bopsurg.errors import BopsurgError
+    from bopsurg.models.data import SCENE_ID_STRIDE, open_split
+    from bopsurg.models.train_pose import _mirrorable
+
+    ex = write_example_dataset(tmp_path, ExampleSpec(seed=4, scenes=2, images_per_scene=2))
+    write_plane_depth(BopDataset(ex.root, ex.split))
+    shutil.copytree(ex.root / ex.split, ex.root / "wide")
+    union = open_split(ex.root, f"{ex.split},wide")
+    ids = [1, 2, SCENE_ID_STRIDE + 1, SCENE_ID_STRIDE + 2]
+    data = load_pose_set(union, ids, 1, context=128, cache_mb=0, progress=False)
+    in_wide = np.array([r.scene_id >= SCENE_ID_STRIDE for r in data.records])
+    assert 0 < in_wide.sum() < len(data)
+    assert _mirrorable(data, union, ()) is None  # every split may mirror
+    assert np.array_equal(_mirrorable(data, union, ("wide",)).numpy(), in_wide)
+    assert np.array_equal(_mirrorable(data, union, (ex.split,)).numpy(), ~in_wide)
+    with pytest.raises(BopsurgError, match="mirror_splits: train_wide not among"):
+        _mirrorable(data, union, ("train_wide",))

@@ -162,6 +162,24 @@ def test_a_run_of_an_older_bopsurg_resumes(dataset, tmp_path):
     assert load_tensors(out / "detector.pt")  # resumed, not refused
 
 
+def test_a_pose_run_from_before_the_mirror_resumes(tmp_path):
+    """train_state.json written before ``recipe.mirror`` and ``recipe.mirror_splits``."""
+    from bopsurg.bop.dataset import BopDataset
+    from tests.models.plane_depth import write_plane_depth
+
+    ex = write_example_dataset(tmp_path / "d", ExampleSpec(seed=1, scenes=2, images_per_scene=2))
+    write_plane_depth(BopDataset(ex.root, ex.split))
+    out = tmp_path / "old"
+    common = ["train", "pose", str(ex.root), "--split", ex.split, "--out", str(out)]
+    args = [*common, "--preset", "test", "--batch-size", "2", "--no-progress", "--threads", "1"]
+    assert main([*args, "--epochs", "1"]) == 0
+    settings = json.loads((out / "train_state.json").read_text())
+    del settings["recipe"]["mirror"], settings["recipe"]["mirror_splits"]
+    (out / "train_state.json").write_text(json.dumps(settings))
+    assert main([*args, "--epochs", "2"]) == 0
+    assert json.loads((out / "train_state.json").read_text())["recipe"]["mirror"] == 0.0
+
+
 RECIPES = sorted((Path(__file__).parents[2] / "bench" / "recipes").glob("*.yaml"))
 
 
