@@ -28,13 +28,10 @@ files, ``scene_gt.json``, test targets), and annotates the scenes that lack mask
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
 import re
 import shutil
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,6 +39,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from bopsurg.atomic import atomic_folder
 from bopsurg.bop.dataset import list_scene_ids, model_path, save_camera_json
 from bopsurg.bop.images import image_size, load_depth, save_depth
 from bopsurg.bop.jsonio import load_json, save_json
@@ -292,7 +290,7 @@ def import_ambf_yaml(
 
         renderer = load_plugin("renderer", renderer_name)()
 
-    with _building(out) as tmp:
+    with atomic_folder(out) as tmp:
         _write(tmp, rec, needle, arc, split, depth_scale)
         annotate_dataset(tmp, split, renderer=renderer, delta=delta, progress=progress)
         record = {
@@ -312,23 +310,6 @@ def import_ambf_yaml(
 def _check_out(out: Path) -> None:
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise DatasetError("already exists and is not empty; choose another --out", path=out)
-
-
-@contextlib.contextmanager
-def _building(out: Path) -> Iterator[Path]:
-    """A temporary folder beside ``out``, renamed onto it when the block succeeds and removed
-    when it fails, so ``out`` appears complete or not at all."""
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        tmp.mkdir(parents=True)
-        yield tmp
-        if out.is_dir():
-            out.rmdir()  # empty, checked by _check_out
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def _write(
@@ -445,7 +426,7 @@ def import_bop_renumbered(
 
     new_id = {i: i + obj_id_offset for i in ids}
     annotated: list[str] = []
-    with _building(out) as tmp:
+    with atomic_folder(out) as tmp:
         shutil.copytree(src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".*.tmp-*"))
         for d in model_dirs:
             folder = tmp / d.name
