@@ -50,10 +50,11 @@ def run(argv: list[str], *, quiet: bool = False) -> float:
     return time.perf_counter() - t0
 
 
-def evaluate(data: Path, results: Path, ev: Path) -> dict:
+def evaluate(data: Path, results: Path, ev: Path, *, split: str = "test") -> dict:
     """Evaluate; returns summary, scores and the per-estimate errors."""
     shutil.rmtree(ev, ignore_errors=True)
-    run(["eval", str(data), str(results), "--out", str(ev), "--no-progress"], quiet=True)
+    argv = ["eval", str(data), str(results), "--split", split, "--out", str(ev), "--no-progress"]
+    run(argv, quiet=True)
     return {
         "summary": json.loads((ev / "summary.json").read_text()),
         "scores": json.loads((ev / "scores.json").read_text()),

@@ -1,0 +1,89 @@
+"""Bench: a model on both faces of the needle (a split and its mirror image).
+
+A suturing needle's arc looks alike from its two faces with tip and tail swapped; which face
+the camera sees is the sign of n.v (arc normal against the line of sight). Recorded episodes
+nearly always show one (model card: n.v > 0.5 in 3 of 2,937 training needles) and the
+paper's AMBF frames show the other. The mirror image of a held-out split (`bopsurg.mirror`:
+columns about c_x, poses R -> F R M, t -> F t) is the same scenes showing the other face, so
+this measures what a model does with that face without any data but ours:
+
+  1. mirror DATA's split into OUT/mirrored (masks and gt_info annotated again)
+  2. bopsurg predict + bopsurg eval on the split and on its mirror image
+  3. print the paper's table for both, the share of needles with RE > 90 deg (tip and tail
+     swapped) and what a model that knew both faces would show: the same numbers twice.
+
+    python bench/bench_faces.py DATA --split test --out runs/faces [--predict-option KEY=VALUE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+from bench_transfer import evaluate, run
+
+from bopsurg.mirror import mirror_split
+
+#: RE above which a needle's tip and tail count as swapped, deg.
+FLIP_DEG = 90.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("data", type=Path, help="BOP dataset root with a held-out split")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--out", type=Path, required=True, help="work folder (rewritten)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--min-visib", type=float, default=0.3, help="GT kept in the table")
+    ap.add_argument(
+        "--predict-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="passed to bopsurg predict --option (e.g. pose=runs/pose/pose.pt)",
+    )
+    args = ap.parse_args()
+    out = args.out
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    mirrored = out / "mirrored"
+    rep = mirror_split(args.data, mirrored, args.split, progress=False)
+    print(f"mirrored {rep.images} images, {rep.instances} instances -> {mirrored}")
+
+    options = [x for o in args.predict_option for x in ("--option", o)]
+    report: dict = {"data": str(args.data), "split": args.split, "options": args.predict_option}
+    rows = {}
+    for face, data in (("the split's face", args.data), ("the other face (mirrored)", mirrored)):
+        key = "mirrored" if data == mirrored else "source"
+        results = out / f"results_{key}.csv"
+        t = run(
+            ["predict", str(data), "--split", args.split, "--out", str(results),
+             "--device", args.device, "--no-progress", *options], quiet=True,
+        )  # fmt: skip
+        ev = evaluate(data, results, out / f"eval_{key}", split=args.split)
+        errs = ev.pop("errors")
+        errs = errs[errs.visib_fract >= args.min_visib]
+        table = ev["summary"]["table"]
+        rows[face] = (
+            table["re"]["median"], table["te"]["median"], table["mssd"]["median"],
+            table["te"]["mean"], float((errs.re > FLIP_DEG).mean()),
+            ev["scores"]["bop19_average_recall_mssd"], int(table["te"]["n"]),
+        )  # fmt: skip
+        report[key] = {**ev, "flipped": rows[face][4], "predict_s": t}
+
+    head = f"{'':<28}{'N':>5}{'RE med':>8}{'TE med':>8}{'MSSD med':>9}{'TE mean':>8}"
+    print(f"\n{head}{f'RE>{FLIP_DEG:g}':>8}{'AR_MSSD':>9}")
+    for face, (re, te, mssd, te_mean, flipped, ar, n) in rows.items():
+        print(
+            f"{face:<28}{n:>5}{re:>8.2f}{te:>8.2f}{mssd:>9.2f}{te_mean:>8.2f}"
+            f"{flipped:>8.1%}{ar:>9.3f}"
+        )
+    (out / "bench_faces.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
+
+
+if __name__ == "__main__":
+    main()
