@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from bopsurg.atomic import atomic_folder
@@ -46,7 +46,7 @@ ImageT = TypeVar("ImageT", bound=np.generic)
 FLIP = np.diag([-1.0, 1.0, 1.0])
 
 #: Largest distance from a reflected model vertex to the model's nearest vertex, as a share of
-#: the model's diameter, for the model to count as its own mirror image.
+#: the model's bounding-box diagonal, for the model to count as its own mirror image.
 SYMMETRY_TOLERANCE = 1e-3
 
 #: What :func:`mirror_split` records in the mirrored dataset's root.
@@ -66,7 +66,9 @@ class PlaneReflection:
         return FLIP @ R @ self.M, FLIP @ (t + R @ self.d)
 
 
-def plane_reflection(model: ObjectModel, normal: F64, *, name: str = "model") -> PlaneReflection:
+def plane_reflection(
+    model: ObjectModel, normal: ArrayLike, *, name: str = "model"
+) -> PlaneReflection:
     """The reflection through the plane of normal ``normal`` (model frame) that maps ``model``
     onto itself; the plane passes through the vertices' centroid, which a symmetric model's
     plane contains.
@@ -83,8 +85,8 @@ def plane_reflection(model: ObjectModel, normal: F64, *, name: str = "model") ->
     M = np.eye(3) - 2.0 * np.outer(n, n)  # noqa: N806  (the docs' symbol)
     d = 2.0 * float(n @ v.mean(axis=0)) * n
     gap = float(cKDTree(v).query(v @ M.T + d)[0].max())
-    diameter = float(np.linalg.norm(np.ptp(v, axis=0)))
-    if gap > SYMMETRY_TOLERANCE * diameter:
+    diagonal = float(np.linalg.norm(np.ptp(v, axis=0)))
+    if gap > SYMMETRY_TOLERANCE * diagonal:
         raise ModelError(
             f"{name}: not its own mirror image through the plane of normal {n.round(4).tolist()} "
             f"(a reflected vertex lies {gap:.3g} mm from the model); a mirror would show "
