@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from bopsurg.atomic import atomic_folder
+from bopsurg.atomic import atomic_folder, check_new_folder
 from bopsurg.bop.dataset import list_scene_ids, model_path, save_camera_json
 from bopsurg.bop.images import image_size, load_depth, save_depth
 from bopsurg.bop.jsonio import load_json, save_json
@@ -278,7 +278,7 @@ def import_ambf_yaml(
     src, out = Path(src), Path(out)
     if not depth_scale > 0:
         raise DatasetError(f"must be > 0, got {depth_scale}", field="depth_scale")
-    _check_out(out)
+    check_new_folder(out)
     rec = read_ambf_yaml(src)
     for frame in rec.frames:
         if frame.depth is not None:
@@ -305,11 +305,6 @@ def import_ambf_yaml(
     infos = load_scene_gt_info(out / split / f"{SCENE_ID:06d}" / "scene_gt_info.json")
     visib = [i[0].visib_fract for _, i in sorted(infos.items())]
     return ImportReport(out, len(rec.frames), rec.frames[0].depth is not None, arc, visib)
-
-
-def _check_out(out: Path) -> None:
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise DatasetError("already exists and is not empty; choose another --out", path=out)
 
 
 def _write(
@@ -384,7 +379,7 @@ def import_bop_renumbered(
     src, out = Path(src), Path(out)
     if not src.is_dir():
         raise DatasetError("dataset folder not found", path=src)
-    _check_out(out)
+    check_new_folder(out)
     model_dirs = [src / n for n in _MODEL_DIRS if (src / n / "models_info.json").is_file()]
     if not model_dirs:
         raise DatasetError("no models/models_info.json (the objects to renumber)", path=src)

@@ -11,6 +11,8 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
+from bopsurg.errors import DatasetError
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
@@ -37,13 +39,26 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp.unlink()
 
 
+def check_new_folder(out: str | Path) -> None:
+    """Refuse an ``out`` that :func:`atomic_folder` cannot build: one that exists and is not
+    an empty folder (call it before the work, so a user mistake costs nothing).
+
+    Raises:
+        DatasetError: ``out`` exists and is not an empty folder.
+    """
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise DatasetError("already exists and is not empty; choose another --out", path=out)
+
+
 @contextlib.contextmanager
 def atomic_folder(out: str | Path) -> Iterator[Path]:
     """Yield a temporary folder beside ``out``, renamed onto it when the block succeeds and
     removed when it fails, so ``out`` appears complete or not at all.
 
     Args:
-        out: The folder to create; it must not exist or be empty (the caller checks).
+        out: The folder to create; it must not exist or be empty (the caller checks first,
+            :func:`check_new_folder`).
     """
     out = Path(out)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")

@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from bopsurg.atomic import atomic_folder
+from bopsurg.atomic import atomic_folder, check_new_folder
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_depth, load_rgb, save_depth, save_rgb
 from bopsurg.bop.meshes import ObjectModel
@@ -165,8 +165,7 @@ def mirror_split(
     from bopsurg.annotate import annotate_dataset
 
     root, out = Path(root), Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise DatasetError("already exists and is not empty; choose another --out", path=out)
+    check_new_folder(out)
     ds = BopDataset(root, split)
     reflections: dict[int, PlaneReflection] = {}
 
