@@ -95,6 +95,24 @@ def plane_reflection(
     return PlaneReflection(M, d)
 
 
+def object_reflection(dataset: BopDataset, obj_id: int) -> PlaneReflection:
+    """The reflection through the plane ``plane_normal`` (``models_info.json``) of object
+    ``obj_id`` that maps its model onto itself.
+
+    Raises:
+        DatasetError: The object has no ``plane_normal``.
+        ModelError: The model is not its own mirror image through that plane.
+    """
+    normal = dataset.models_info.get(obj_id, {}).get("plane_normal")
+    if normal is None:
+        raise DatasetError(
+            f"obj_id {obj_id} has no plane_normal: a mirror needs the plane the object is "
+            "symmetric about",
+            path=dataset.models_dir / "models_info.json",
+        )
+    return plane_reflection(dataset.model(obj_id), normal, name=f"obj_id {obj_id}")
+
+
 def mirror_columns(width: int, cx: float) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
     """For each column ``u'`` of the mirrored image, the source column ``2 c_x - u'`` and
     whether it lies inside the image.
@@ -171,15 +189,7 @@ def mirror_split(
 
     def reflection(obj_id: int) -> PlaneReflection:
         if obj_id not in reflections:
-            normal = ds.models_info.get(obj_id, {}).get("plane_normal")
-            if normal is None:
-                raise DatasetError(
-                    f"obj_id {obj_id} has no plane_normal: a mirror needs the plane the object "
-                    "is symmetric about",
-                    path=ds.models_dir / "models_info.json",
-                )
-            model = ds.model(obj_id)
-            reflections[obj_id] = plane_reflection(model, normal, name=f"obj_id {obj_id}")
+            reflections[obj_id] = object_reflection(ds, obj_id)
         return reflections[obj_id]
 
     if renderer is None:

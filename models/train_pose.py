@@ -26,6 +26,7 @@ from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError
 from bopsurg.geometry import rotation_about_axis
+from bopsurg.mirror import PlaneReflection, object_reflection
 from bopsurg.models import training
 from bopsurg.models.data import (
     SCENE_ID_STRIDE,
@@ -323,7 +324,9 @@ def train_pose(
     model = model.to(dev)
     export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
     mirrorable = _mirrorable(train, ds, recipe.mirror_splits)
-    step = _step_fn(model, cfg, geo, recipe, dev, seed, mirrorable)
+    # the needle's symmetry through its plane, from its mesh (checked): what a mirror shows
+    reflection = object_reflection(ds, obj_id) if recipe.mirror > 0 else None
+    step = _step_fn(model, cfg, geo, recipe, dev, seed, mirrorable, reflection)
     return training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export,
@@ -362,6 +365,7 @@ def _step_fn(
     dev: torch.device,
     seed: int,
     mirrorable: torch.Tensor | None = None,
+    reflection: PlaneReflection | None = None,
 ) -> training.StepFn:
     """The pose head's training step: jittered ROIs of a batch, the GDR-Net losses."""
     points = geo.points.to(dev)
@@ -373,7 +377,8 @@ def _step_fn(
             flip = (u < recipe.mirror).cpu()
             if mirrorable is not None:
                 flip &= mirrorable[batch.idx]
-            batch = mirror_batch(batch, flip)
+            assert reflection is not None  # made by train_pose whenever recipe.mirror > 0
+            batch = mirror_batch(batch, flip, reflection)
         seeds = batch_seeds(seed, epoch, batch.idx)
         roi_img, coord2d, target = roi_batch(
             batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds

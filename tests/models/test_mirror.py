@@ -9,20 +9,33 @@ torch = pytest.importorskip("torch")
 
 from bopsurg.bop.dataset import BopDataset  # noqa: E402
 from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
+from bopsurg.mirror import PlaneReflection, object_reflection  # noqa: E402
 from bopsurg.models.data import load_pose_set  # noqa: E402
 from bopsurg.models.mirror import mirror_batch  # noqa: E402
 from tests.models.plane_depth import write_plane_depth  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def batch(tmp_path_factory):
-    """Every needle of a small example split (depth: a plane at the needle), one batch."""
+def example(tmp_path_factory):
+    """Every needle of a small example split (depth: a plane at the needle), one batch, and
+    the needle's reflection through its plane (from its mesh and models_info)."""
     root = tmp_path_factory.mktemp("mirror")
     ex = write_example_dataset(root, ExampleSpec(seed=4, scenes=2, images_per_scene=4))
-    write_plane_depth(BopDataset(ex.root, ex.split))
-    data = load_pose_set(BopDataset(ex.root, ex.split), [1, 2], 1, context=128, cache_mb=0)
+    ds = BopDataset(ex.root, ex.split)
+    write_plane_depth(ds)
+    data = load_pose_set(ds, [1, 2], 1, context=128, cache_mb=0)
     n = len(data)
-    return data.collate([data[i] for i in range(n)], list(range(n)))
+    return data.collate([data[i] for i in range(n)], list(range(n))), object_reflection(ds, 1)
+
+
+@pytest.fixture(scope="module")
+def batch(example):
+    return example[0]
+
+
+@pytest.fixture(scope="module")
+def reflection(example):
+    return example[1]
 
 
 def _reprojection_px(b) -> np.ndarray:
@@ -41,14 +54,14 @@ def _reprojection_px(b) -> np.ndarray:
     return np.array(out)
 
 
-def test_the_mirrored_samples_show_their_pixels_where_their_pose_puts_them(batch):
+def test_the_mirrored_samples_show_their_pixels_where_their_pose_puts_them(batch, reflection):
     assert len(batch.idx) >= 4
     # the data's own consistency: the coordinates are sampled nearest, so a context pixel
     # holds its nearest image pixel's point, up to half an image pixel away
     before = _reprojection_px(batch)
     assert before.max() < 0.51
     flip = torch.arange(len(batch.idx)) % 2 == 0
-    m = mirror_batch(batch, flip)
+    m = mirror_batch(batch, flip, reflection)
     # mirrored exactly: every pixel keeps its error, mirrored (one context pixel off, 1/a
     # image px, would add about a pixel)
     np.testing.assert_allclose(_reprojection_px(m), before, atol=1e-3)
@@ -58,9 +71,12 @@ def test_the_mirrored_samples_show_their_pixels_where_their_pose_puts_them(batch
     assert torch.equal(m.R[~flip], batch.R[~flip])
 
 
-def test_the_mirror_shows_the_other_face_with_a_proper_rotation(batch):
+def test_the_mirror_shows_the_other_face_with_a_proper_rotation(batch, reflection):
+    # bopsurg's needle: the plane z = 0 through the model origin
+    np.testing.assert_allclose(reflection.M, np.diag([1.0, 1.0, -1.0]), atol=1e-12)
+    np.testing.assert_allclose(reflection.d, 0.0, atol=1e-9)
     flip = torch.ones(len(batch.idx), dtype=torch.bool)
-    m = mirror_batch(batch, flip)
+    m = mirror_batch(batch, flip, reflection)
     det = torch.linalg.det(m.R.double())
     np.testing.assert_allclose(det.numpy(), 1.0, atol=1e-5)
     n, n2 = batch.R[:, :, 2].double(), m.R[:, :, 2].double()  # the arc normals (model +Z)
@@ -74,13 +90,36 @@ def test_the_mirror_shows_the_other_face_with_a_proper_rotation(batch):
         a, c0x = float(m.ctx[k, 0]), float(m.ctx[k, 1])
         left = (cols.min() - C / 2) / a + c0x
         assert abs(left - float(m.bbox[k, 0])) < 1.0 / a + 1e-3
-    back = mirror_batch(m, flip)  # twice is the identity
+    back = mirror_batch(m, flip, reflection)  # twice is the identity
     for name in ("rgb", "mask", "xyz"):
         assert torch.equal(getattr(back, name), getattr(batch, name))
     for name in ("ctx", "bbox", "R", "t"):
         np.testing.assert_allclose(
             getattr(back, name).numpy(), getattr(batch, name).numpy(), atol=1e-4
         )
+
+
+def test_a_needle_whose_plane_is_off_its_model_origin_mirrors_to_the_same_poses(batch, reflection):
+    """The same samples in a model frame shifted by o: the plane is z = o_z, so the reflection
+    moves points by d = (0, 0, 2 o_z). Mirrored there, every pixel still lands where the pose
+    puts it, and the poses are the first frame's mirrored poses moved by o (dropping R d from
+    the translation would put them 2 o_z mm off)."""
+    import dataclasses
+
+    o = torch.tensor([0.3, -0.2, 2.5])
+    shifted = dataclasses.replace(
+        batch,
+        xyz=torch.where(batch.mask[:, None], batch.xyz.float() + o[:, None, None], 0.0).half(),
+        t=batch.t - batch.R @ o,
+    )
+    plane = PlaneReflection(reflection.M, reflection.M @ -o.double().numpy() + o.double().numpy())
+    np.testing.assert_allclose(plane.d, [0.0, 0.0, 5.0], atol=1e-12)
+    flip = torch.arange(len(batch.idx)) % 2 == 1
+    m, ms = mirror_batch(batch, flip, reflection), mirror_batch(shifted, flip, plane)
+    # (float16 coordinates, rounded again after the shift and the mirror: ~0.01 px)
+    np.testing.assert_allclose(_reprojection_px(ms), _reprojection_px(shifted), atol=0.01)
+    np.testing.assert_allclose(ms.R.numpy(), m.R.numpy(), atol=1e-6)
+    np.testing.assert_allclose(ms.t.numpy(), (m.t - m.R @ o).numpy(), atol=1e-4)
 
 
 def test_a_run_with_mirrored_samples_is_configured_recorded_and_deterministic(tmp_path):
