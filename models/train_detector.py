@@ -47,6 +47,10 @@ class DetectorRecipe:
     scale: tuple[float, float] = (0.6, 1.4)
     translate: float = 0.1
     flip: float = 0.5
+    #: Amplitudes of the per-image HSV jitter (hue in turns, saturation and value gains;
+    #: :func:`~bopsurg.models.detector.augment.hsv_jitter`). A hue of 0.5 spins the whole
+    #: colour circle: tissue of any colour, for targets whose phantom is not ours.
+    hsv: tuple[float, float, float] = (0.015, 0.7, 0.4)
     min_visib: float = 0.1
     val_every: int = 5
     augment: PhotometricConfig = field(default_factory=PhotometricConfig)
@@ -151,7 +155,7 @@ def train_detector(
     )  # fmt: skip
     legacy = {
         "model": preset_cfg.to_dict(),
-        "recipe": {"augment": asdict(PhotometricConfig()), "init": ""},
+        "recipe": {"augment": asdict(PhotometricConfig()), "init": "", "hsv": [0.015, 0.7, 0.4]},
     }
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
     write_config(out, resolved("detector", preset, seed, cfg, recipe, loader))
@@ -191,7 +195,7 @@ def _step_fn(
     def step(batch: DetectionBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
         images = batch.images.to(dev).float() / 255
         targets = [t.to(dev) for t in batch.targets]
-        images = hsv_jitter(images, gen)
+        images = hsv_jitter(images, gen, *recipe.hsv)
         images, targets = random_flip(images, targets, gen, p=recipe.flip)
         images, targets = random_affine(
             images, targets, gen, scale=recipe.scale, translate=recipe.translate

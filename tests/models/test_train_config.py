@@ -156,10 +156,33 @@ def test_a_run_of_an_older_bopsurg_resumes(dataset, tmp_path):
     args = [*common, "--preset", "test", "--batch-size", "2", "--no-progress"]
     assert main([*args, "--epochs", "1"]) == 0
     settings = json.loads((out / "train_state.json").read_text())
-    del settings["model"], settings["recipe"]["augment"]
+    del settings["model"], settings["recipe"]["augment"], settings["recipe"]["hsv"]
     (out / "train_state.json").write_text(json.dumps(settings))
     assert main([*args, "--epochs", "2"]) == 0
     assert load_tensors(out / "detector.pt")  # resumed, not refused
+
+
+def test_the_detector_recipe_sets_its_colour_jitter(dataset, tmp_path, capsys):
+    """``recipe.hsv``: the old fixed jitter by default; a full hue circle trains otherwise."""
+    assert _dump(capsys, "detector", "--preset", "test")["recipe"]["hsv"] == [0.015, 0.7, 0.4]
+    weights = {}
+    for name, hsv in (
+        ("a", "[0.5, 0.7, 0.4]"),
+        ("b", "[0.5, 0.7, 0.4]"),
+        ("old", "[0.015, 0.7, 0.4]"),
+    ):
+        cfg = _write(
+            tmp_path / f"{name}.yaml", f"preset: test\nrecipe: {{epochs: 1, hsv: {hsv}}}\n"
+        )
+        out = tmp_path / name
+        args = ["train", "detector", str(dataset), "--split", "test", "--out", str(out)]
+        assert main([*args, "--config", cfg, "--batch-size", "2", "--no-progress"]) == 0
+        assert yaml.safe_load((out / "config.yaml").read_text())["recipe"]["hsv"] == yaml.safe_load(
+            hsv
+        )
+        weights[name] = load_tensors(out / "detector.pt")
+    assert all(torch.equal(weights["a"][k], weights["b"][k]) for k in weights["a"])
+    assert any(not torch.equal(weights["a"][k], weights["old"][k]) for k in weights["a"])
 
 
 def test_a_pose_run_from_before_the_mirror_resumes(tmp_path):
