@@ -46,6 +46,7 @@ from bopsurg.models.data import (
     open_split,
     split_scenes,
 )
+from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.pose.roi import crop, dzi_boxes
 from bopsurg.models.refine.fit import ArcModel
@@ -189,13 +190,18 @@ def train(
     split: str = "train",
     augment: str = "off",
     init: Path | None = None,
+    hue: float = 0.0,
 ) -> Path:
     """Train and write OUT/needle_seg.pt; returns its path.
 
     ``split`` may name several splits (``train,train_wide``); ``augment`` names a
     :class:`~bopsurg.models.photometric.PhotometricConfig` preset applied to the crops
     (``off``: none, the shipped recipe; ``domain``: blur, noise, gamma, colour, JPEG);
-    ``init`` a segmenter checkpoint to start from (:func:`init_weights`)."""
+    ``init`` a segmenter checkpoint to start from (:func:`init_weights`); ``hue`` the
+    amplitude (turns) of a hue shift per crop, U(-hue, hue), drawn like ``augment`` (0.5 spins
+    the whole colour circle: the tissue's colour is not what tells the needle)."""
+    if not 0.0 <= hue <= 0.5:
+        raise ValueError(f"--hue must lie in [0, 0.5] turns, got {hue}")
     torch.manual_seed(seed)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     ds = open_split(data, split)
@@ -230,6 +236,8 @@ def train(
         x, y = make_batch(items, idx, cfg, gen)
         if augment != "off":  # seeded per (step, sample): no draw from gen, so "off" is unchanged
             x = augment_batch(x, photometric, batch_seeds(seed, step, idx))
+        if hue > 0:  # its own generator, for the same reason
+            x = hsv_jitter(x, torch.Generator().manual_seed(seed * 1_000_003 + step), hue, 0.0, 0.0)
         loss = seg_loss(net(x), y)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -248,6 +256,7 @@ def train(
         **({"split": split} if split != "train" else {}),
         **({"augment": augment} if augment != "off" else {}),
         **({"init": str(init)} if init is not None else {}),
+        **({"hue": hue} if hue > 0 else {}),
         "train_seconds": round(seconds, 1),
         "torch": torch.__version__,
     }
@@ -299,6 +308,12 @@ def main(argv: list[str] | None = None) -> int:
         "projection (needs --amodal; at test, the start pose's projected arc)",
     )
     ap.add_argument("--init", type=Path, help="start from this segmenter checkpoint (fine-tune)")
+    ap.add_argument(
+        "--hue",
+        type=float,
+        default=0.0,
+        help="hue shift amplitude per crop, turns (0.5: any tissue colour; default 0: none)",
+    )
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -310,6 +325,7 @@ def main(argv: list[str] | None = None) -> int:
         train(
             args.dataset, args.out, args.steps, args.batch, args.seed, cfg,
             not args.no_progress, split=args.split, augment=args.augment, init=args.init,
+            hue=args.hue,
         )  # fmt: skip
     except (BopsurgError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)  # noqa: T201 (the CLI's one-line error)

@@ -47,6 +47,23 @@ def test_seeded_two_splits_and_augmentation_recorded(dataset, tmp_path):
     assert "split" not in plain_info["meta"]
 
 
+def test_hue_shifts_are_seeded_recorded_and_checked(dataset, tmp_path, capsys):
+    for name in ("a", "b"):
+        assert _train(dataset, tmp_path / name, "--hue", "0.5") == 0
+    assert _train(dataset, tmp_path / "plain") == 0
+    a, info = load_checkpoint(tmp_path / "a" / "needle_seg.pt", "needle_seg")
+    b, _ = load_checkpoint(tmp_path / "b" / "needle_seg.pt", "needle_seg")
+    plain, plain_info = load_checkpoint(tmp_path / "plain" / "needle_seg.pt", "needle_seg")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], plain[k]) for k in a)
+    assert info["meta"]["hue"] == 0.5
+    assert "hue" not in plain_info["meta"]
+    assert _train(dataset, tmp_path / "bad", "--hue", "0.7") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: ")
+    assert "--hue" in err[-1]
+
+
 def test_a_missing_split_is_one_line(dataset, tmp_path, capsys):
     assert _train(dataset, tmp_path / "x", "--split", "train,nope") == 2
     err = capsys.readouterr().err.strip().splitlines()
