@@ -37,6 +37,7 @@ from bopsurg.models.pose.decode import (
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser
+from bopsurg.models.refine.ends import EndJudge, load_judge
 from bopsurg.models.refine.fit import FitSettings
 from bopsurg.models.refine.refiner import NeedleRefiner
 from bopsurg.models.training import resolve_device
@@ -74,6 +75,9 @@ ZOOM_SCALES = (5 / 6, 1.0, 7 / 6)
 #: The shipped needle segmenter (see MODEL_CARD.md); the refinement is on by default when
 #: this file exists, ``refine=none`` turns it off.
 SHIPPED_SEGMENTER = SHIPPED / "needle_seg.pt"
+#: The shipped needle-end classifier (:mod:`bopsurg.models.refine.ends`; MODEL_CARD.md): on
+#: by default when this file exists, ``ends=none`` turns it off.
+SHIPPED_ENDS = SHIPPED / "needle_ends.pt"
 #: Re-crop: when the segmenter's visible mask grows the detection box's longer side by at
 #: least this factor (the needle runs past its box), the pose head and the segmenter run again
 #: on the union of the box and the mask's box. The detector boxes part of a needle that is
@@ -176,6 +180,10 @@ class GdrNetEstimator:
         recrop: With the refinement: run the needle's ROI again on the box grown to its
             visible mask when that grows the box's longer side this many times
             (:data:`RECROP_GROWTH`); 0 turns it off.
+        ends: Needle-end classifier checkpoint, or None: after the refinement, a needle pose
+            whose tip looks less like a tip than its tail is turned end for end
+            (:mod:`bopsurg.models.refine.ends`).
+        ends_margin: The logit margin the tail must win by.
     """
 
     def __init__(
@@ -192,6 +200,8 @@ class GdrNetEstimator:
         fit: FitSettings | None = None,
         zoom: tuple[float, ...] = ZOOM_SCALES,
         recrop: float = RECROP_GROWTH,
+        ends: str | Path | None = None,
+        ends_margin: float = 0.0,
     ) -> None:
         if decode not in ("direct", "pnp"):
             raise BopsurgError(f"decode must be 'direct' or 'pnp', got {decode!r}")
@@ -221,6 +231,18 @@ class GdrNetEstimator:
             if segmenter is None
             else NeedleRefiner.from_checkpoint(segmenter, self.device, fit or REFINE_FIT, mask)
         )
+        #: The needle-end check (needle only), or None.
+        self.ends: EndJudge | None = (
+            None if ends is None else load_judge(ends, self.device, ends_margin)
+        )
+        if self.ends is not None and self.refiner is not None:
+            a, b = self.ends.arc, self.refiner.arc
+            if not np.allclose([a.radius, a.arc_rad], [b.radius, b.arc_rad], rtol=1e-3):
+                raise BopsurgError(
+                    f"gdrnet: the end classifier {ends} was trained for another needle (radius "
+                    f"{a.radius:.2f} mm, arc {np.rad2deg(a.arc_rad):.1f} deg) than the "
+                    f"segmenter (radius {b.radius:.2f} mm, arc {np.rad2deg(b.arc_rad):.1f} deg)"
+                )
 
     @torch.inference_mode()
     def detect(self, rgb: np.ndarray) -> Detections:
@@ -249,6 +271,9 @@ class GdrNetEstimator:
                 f"refinement improved {st.refined} needle poses, {st.kept} kept the network's"
                 + (f", {self.recropped} re-cropped to their whole mask" if self.recrop else "")
             )
+        if self.ends is not None:
+            st_e = self.ends.stats
+            lines.append(f"end check turned {st_e.swapped} of {st_e.checked} needles end for end")
         return "; ".join(lines) or None
 
     def _select(self, boxes: Detections, obj_ids: tuple[int, ...]) -> Detections:
@@ -289,6 +314,8 @@ class GdrNetEstimator:
             if self.refiner is not None and int(obj) == NEEDLE_OBJ_ID:
                 R, t, boxes, grown = self.refine_needles(head, image, K, box_xywh, R, t)
                 bbox_out[rows[grown]] = boxes[grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
+            if self.ends is not None and int(obj) == NEEDLE_OBJ_ID:
+                R, _ = self.ends(image, K, R, t)
             R_out[rows], t_out[rows] = R, t
         return PosePredictions(found.obj_id, found.score, R_out, t_out, bbox_out)
 
@@ -429,10 +456,13 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     ``zoom`` (comma-separated crop-side multiples whose direct poses are averaged; default
     :data:`ZOOM_SCALES`, ``1`` for one crop) and ``recrop`` (with the refinement: the growth
     of the box's longer side by the segmenter's visible mask that runs the needle's ROI again
-    on the grown box; default :data:`RECROP_GROWTH`, ``0`` off).
+    on the grown box; default :data:`RECROP_GROWTH`, ``0`` off), ``ends`` (the needle-end
+    classifier's checkpoint, or ``none``; default: the shipped one when it exists) and
+    ``ends_margin`` (the logit margin a swap needs, default 0).
     """
     known = {"detector", "pose", "device", "conf", "max_per_object", "decode", "no_detector"}
-    known |= {"refine", "segmenter", "mask", "min_explained", "zoom", "recrop"}
+    known |= {"refine", "segmenter", "mask", "min_explained", "zoom", "recrop", "ends"}
+    known |= {"ends_margin"}
     unknown = sorted(set(options) - known)
     if unknown:
         raise BopsurgError(f"gdrnet: unknown option(s) {unknown}; known: {sorted(known)}")
@@ -445,6 +475,7 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         max_per = int(options.get("max_per_object", 1))
         min_explained = float(options.get("min_explained", FitSettings.min_explained))
         recrop = float(options.get("recrop", RECROP_GROWTH))
+        ends_margin = float(options.get("ends_margin", 0.0))
     except ValueError as err:
         raise BopsurgError(f"gdrnet: bad option value ({err})") from err
     try:
@@ -461,6 +492,15 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
             f"gdrnet: refine=fit needs a needle segmenter, {segmenter} does not exist "
             "(train one with python -m bopsurg.models.refine.train_seg, pass segmenter=PATH)"
         )
+    ends_opt = str(options.get("ends", "")).strip()
+    if ends_opt == "none":
+        ends = None
+    elif ends_opt:
+        ends = Path(ends_opt)
+        if not ends.exists():
+            raise BopsurgError(f"gdrnet: ends={ends} does not exist")
+    else:
+        ends = SHIPPED_ENDS if SHIPPED_ENDS.exists() else None
     return GdrNetEstimator(
         detector,
         [pose],
@@ -473,4 +513,6 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         fit=dataclasses.replace(REFINE_FIT, min_explained=min_explained),
         zoom=zoom or ZOOM_SCALES,
         recrop=recrop,
+        ends=ends,
+        ends_margin=ends_margin,
     )
