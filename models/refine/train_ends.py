@@ -4,14 +4,16 @@
 
 Per GT needle instance (visib_fract >= 0.3) the patches of its two ends are cut at the GT
 pose, twice the side the classifier sees (so a jittered crop stays inside), and kept in
-memory as uint8; an end whose projection is not on the visible mask (within 2 px: in the
-jaws, in the tissue, off the image) is left out. Each step draws a batch of ends and crops
+memory as uint8. An end whose projection is not on the visible mask (within 2 px: in the
+jaws, in the tissue) gets the target 0.5, "cannot tell" (``--seen-only`` leaves it out), so the
+end that is seen decides; one off the image is left out. Each step draws a batch of ends and crops
 each at a random turn (±``--turn`` degrees), scale (×0.8–1.25) and shift (±10 % of the side),
 as a pose estimate a few degrees and millimetres off would frame it, flipped about its x axis
 half the time (the other face), then the whole hue circle and the ``domain`` photometric set:
 the colours of the tissue are not what tells a tip from a tail. Binary cross-entropy, AdamW
 with warm-up and cosine decay; deterministic for a seed. Held-out scenes of the split (the
-estimators' :func:`~bopsurg.models.data.split_scenes`) give the validation accuracy.
+estimators' :func:`~bopsurg.models.data.split_scenes`) give the validation accuracy on seen
+ends.
 
 Writes OUT/needle_ends.pt and its JSON (config, the needle arc, recipe, seed, accuracy).
 """
@@ -68,11 +70,14 @@ def collect_ends(
     *,
     max_instances: int | None = None,
     seed: int = 0,
+    unseen: bool = True,
     progress: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Patches (N, 3, 2P, 2P) uint8 of the seen ends of the instances (visib_fract >= 0.3)
-    of ``scene_ids`` at their GT poses, and their labels (N,) (1: the tip). With
-    ``max_instances``, that many instances drawn with ``seed``."""
+    """Patches (N, 3, 2P, 2P) uint8 of the ends of the instances (visib_fract >= 0.3) of
+    ``scene_ids`` at their GT poses, and their targets (N,): 1 the tip, 0 the tail, and with
+    ``unseen`` 0.5 for an end hidden in the image (in the jaws, in the tissue): the patch
+    says nothing, so the classifier learns to say so (logit 0) and the other end decides.
+    With ``max_instances``, that many instances drawn with ``seed``."""
     per_image = list_instances(ds, scene_ids, obj_ids=[obj_id], min_visib=0.3)
     records = [r for rs in per_image.values() for r in rs]
     if max_instances is not None and len(records) > max_instances:
@@ -95,12 +100,14 @@ def collect_ends(
                 if not (np.isfinite(u) and np.isfinite(v) and np.isfinite(side[0, end])):
                     continue
                 iu, iv = round(u), round(v)
-                if not (0 <= iv < seen.shape[0] and 0 <= iu < seen.shape[1] and seen[iv, iu]):
+                if not (0 <= iv < seen.shape[0] and 0 <= iu < seen.shape[1]):
+                    continue  # off the image: nothing to learn from
+                if not (seen[iv, iu] or unseen):
                     continue
                 patches.append(
                     _cut(rgb, uv[0, end], axis[0, end], 2.0 * side[0, end], 2 * cfg.patch)
                 )
-                labels.append(float(end == TIP))
+                labels.append(float(end == TIP) if seen[iv, iu] else 0.5)
     if not patches:
         raise BopsurgError(f"{ds.split_dir}: no needle end is seen in the GT of these scenes")
     return torch.from_numpy(np.stack(patches)), torch.tensor(labels)
@@ -151,7 +158,10 @@ def jittered(
 
 
 def accuracy(net: EndNet, patches: torch.Tensor, labels: torch.Tensor, patch: int) -> float:
-    """Share of ends classified right on their central crops (no jitter)."""
+    """Share of the seen ends (targets 0 and 1) classified right on their central crops (no
+    jitter)."""
+    keep = labels != 0.5
+    patches, labels = patches[keep], labels[keep]
     if len(patches) == 0:
         return float("nan")
     net.eval()
@@ -174,6 +184,7 @@ def train(
     seed: int = 0,
     turn_deg: float = 15.0,
     max_instances: int | None = None,
+    unseen: bool = True,
     cfg: EndConfig | None = None,
     progress: bool = True,
 ) -> Path:
@@ -185,15 +196,18 @@ def train(
     arc = needle_arc(ds, obj_id)
     train_ids, val_ids = split_scenes(ds)
     x_tr, y_tr = collect_ends(
-        ds, train_ids, obj_id, arc, cfg, max_instances=max_instances, seed=seed, progress=progress
-    )
+        ds, train_ids, obj_id, arc, cfg, max_instances=max_instances, seed=seed, unseen=unseen,
+        progress=progress,
+    )  # fmt: skip
     n_val = None if max_instances is None else max(1, max_instances // 10)
     x_va, y_va = collect_ends(
-        ds, val_ids, obj_id, arc, cfg, max_instances=n_val, seed=seed + 1, progress=progress
-    )
+        ds, val_ids, obj_id, arc, cfg, max_instances=n_val, seed=seed + 1, unseen=False,
+        progress=progress,
+    )  # fmt: skip
     log.info(
-        "%d training ends (%.0f %% tips), %d validation", len(x_tr), 100 * y_tr.mean(), len(x_va)
-    )
+        "%d training ends (%.0f %% tips, %.0f %% hidden), %d validation",
+        len(x_tr), 100 * (y_tr == 1).float().mean(), 100 * (y_tr == 0.5).float().mean(), len(x_va),
+    )  # fmt: skip
     net = EndNet(cfg)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     photometric = PhotometricConfig(**PhotometricConfig.preset_values("domain"))
@@ -230,7 +244,7 @@ def train(
         "val_accuracy": round(acc, 4),
         "recipe": {
             "steps": steps, "batch": batch, "lr": lr, "seed": seed, "turn_deg": turn_deg,
-            "max_instances": max_instances,
+            "max_instances": max_instances, "unseen": unseen,
         },
         "train_seconds": round(seconds, 1),
         "torch": torch.__version__,
@@ -255,6 +269,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--turn", type=float, default=15.0, help="patch turn jitter, degrees")
     ap.add_argument("--max-instances", type=int, help="draw this many GT needles (default: all)")
+    ap.add_argument(
+        "--seen-only",
+        action="store_true",
+        help="leave out the hidden ends (default: taught as 'cannot tell', target 0.5)",
+    )
     ap.add_argument("--patch", type=int, default=EndConfig.patch, help="patch side, px")
     ap.add_argument("--scale", type=float, default=EndConfig.scale,
                     help="patch side / the arc's projected radius")  # fmt: skip
@@ -265,6 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         train(
             args.dataset, args.out, split=args.split, steps=args.steps, batch=args.batch,
             lr=args.lr, seed=args.seed, turn_deg=args.turn, max_instances=args.max_instances,
+            unseen=not args.seen_only,
             cfg=EndConfig(patch=args.patch, scale=args.scale), progress=not args.no_progress,
         )  # fmt: skip
     except (BopsurgError, ValueError) as err:

@@ -211,7 +211,12 @@ def test_the_seen_ends_are_labelled_tip_and_tail(dataset):
     x, y = collect_ends(ds, ds.scene_ids, 1, arc, EndConfig(patch=16), progress=False)
     assert x.dtype == torch.uint8
     assert x.shape[1:] == (3, 32, 32)
-    assert 0 < y.sum() < len(y)  # tips and tails
+    assert set(y.tolist()) == {0.0, 0.5, 1.0}  # tails, hidden ends, tips
+    seen_x, seen_y = collect_ends(
+        ds, ds.scene_ids, 1, arc, EndConfig(patch=16), unseen=False, progress=False
+    )
+    assert set(seen_y.tolist()) == {0.0, 1.0}
+    assert len(seen_y) == int((y != 0.5).sum())
 
 
 def test_trainer_errors_are_one_line(dataset, tmp_path, capsys):
