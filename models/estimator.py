@@ -478,6 +478,8 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         ends_margin = float(options.get("ends_margin", 0.0))
     except ValueError as err:
         raise BopsurgError(f"gdrnet: bad option value ({err})") from err
+    if not np.isfinite(ends_margin):
+        raise BopsurgError(f"gdrnet: ends_margin must be a finite logit margin, got {ends_margin}")
     try:
         zoom = tuple(map(float, str(options["zoom"]).split(","))) if "zoom" in options else ()
     except ValueError as err:

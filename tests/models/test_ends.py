@@ -212,7 +212,7 @@ def test_the_seen_ends_are_labelled_tip_and_tail(dataset):
     assert x.dtype == torch.uint8
     assert x.shape[1:] == (3, 32, 32)
     assert set(y.tolist()) == {0.0, 0.5, 1.0}  # tails, hidden ends, tips
-    seen_x, seen_y = collect_ends(
+    _, seen_y = collect_ends(
         ds, ds.scene_ids, 1, arc, EndConfig(patch=16), unseen=False, progress=False
     )
     assert set(seen_y.tolist()) == {0.0, 1.0}
@@ -237,6 +237,8 @@ def test_estimator_options_switch_the_end_check(dataset, tmp_path):
         create({"no_detector": "1", "ends": str(tmp_path / "no.pt")})
     with pytest.raises(BopsurgError, match="bad option value"):
         create({"no_detector": "1", "ends_margin": "x"})
+    with pytest.raises(BopsurgError, match="finite"):
+        create({"no_detector": "1", "ends_margin": "nan"})
     # a classifier of another needle than the refinement's segmenter is refused
     from bopsurg.models.estimator import SHIPPED_SEGMENTER
 
