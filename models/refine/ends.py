@@ -7,7 +7,7 @@ same pixels with tip and tail swapped, and the far side of the arc towards the c
 image differs only at the two ends: the tip is a sharp point, the tail blunt, with the
 suture thread leaving it where one is attached. The pose head reads that from a 128 px ROI
 of 32×32 maps, and on a phantom it was not trained on it answers with the swap (the paper's
-AMBF frames: the right arc, 160–180° off; MODEL_CARD.md).
+AMBF frames, turned to our tissue's hue: the right arc, 152–177° off; MODEL_CARD.md).
 
 Here each end is looked at on its own, at full resolution, in a frame the pose fixes: a
 square patch centred on the end's projection, side a share of the arc's projected radius,
