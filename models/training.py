@@ -77,6 +77,12 @@ def batches(n: int, batch_size: int, gen: torch.Generator, *, drop_last: bool = 
         yield perm[i : i + batch_size]
 
 
+def warmup_cosine_lr(step: int, total: int, warmup: int, base: float) -> float:
+    """Linear warm-up over ``warmup`` steps times a cosine from ``base`` to 0 over ``total``
+    (the refinement trainers' schedule, :mod:`bopsurg.models.refine`)."""
+    return base * min(1.0, (step + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * step / total))
+
+
 def flat_cosine_lr(step: int, total: int, warmup: int, anneal_from: float, base: float) -> float:
     """GDR-Net's ``flat_and_anneal`` (and YOLOX's warm-up + cosine with anneal_from 0):
     quadratic warm-up from 0 over ``warmup`` steps, flat, then cosine to 5 % of ``base``

@@ -35,6 +35,9 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.errors import BopsurgError
+
 F64 = NDArray[np.float64]
 
 #: Fewest foreground pixels a fit needs; fewer and the pose is left as it is.
@@ -74,6 +77,24 @@ class ArcModel:
         s = np.linspace(0.0, self.arc_rad, n)
         taper = np.clip((self.arc_rad - s) / max(self.tip_rad, 1e-9), 0.0, 1.0)
         return self.wire_radius * taper
+
+
+def dataset_arc(dataset: BopDataset, obj_id: int) -> ArcModel:
+    """The arc of needle ``obj_id`` of a dataset, from its ``models_info`` tip and tail
+    keypoints.
+
+    Raises:
+        BopsurgError: The keypoints are missing or do not describe an arc (one line naming
+            models_info.json).
+    """
+    try:
+        kp = dataset.models_info[obj_id]["keypoints"]
+        return ArcModel.from_keypoints(kp["tail"], kp["tip"])
+    except (KeyError, ValueError) as err:
+        raise BopsurgError(
+            f"{dataset.models_dir / 'models_info.json'}: obj {obj_id} needs tip and tail "
+            f"keypoints ({err})"
+        ) from err
 
 
 @dataclass(frozen=True)

@@ -41,24 +41,13 @@ from bopsurg.models.data import list_instances, open_split, split_scenes
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.refine.ends import TIP, EndConfig, EndNet, end_frames, sample_patches
-from bopsurg.models.refine.fit import ArcModel
+from bopsurg.models.refine.fit import ArcModel, dataset_arc
+from bopsurg.models.training import warmup_cosine_lr
 
 log = logging.getLogger(__name__)
 
 #: An end counts as seen when the visible mask holds a pixel this close to its projection, px.
 SEEN_PX = 2
-
-
-def needle_arc(ds: BopDataset, obj_id: int) -> ArcModel:
-    """The arc of needle ``obj_id`` from its ``models_info`` keypoints (one-line error)."""
-    try:
-        kp = ds.models_info[obj_id]["keypoints"]
-        return ArcModel.from_keypoints(kp["tail"], kp["tip"])
-    except (KeyError, ValueError) as err:
-        raise BopsurgError(
-            f"{ds.models_dir / 'models_info.json'}: obj {obj_id} needs tip and tail keypoints "
-            f"({err})"
-        ) from err
 
 
 def collect_ends(
@@ -193,7 +182,7 @@ def train(
     torch.manual_seed(seed)
     ds = open_split(data, split)
     obj_id = 1
-    arc = needle_arc(ds, obj_id)
+    arc = dataset_arc(ds, obj_id)
     train_ids, val_ids = split_scenes(ds)
     x_tr, y_tr = collect_ends(
         ds, train_ids, obj_id, arc, cfg, max_instances=max_instances, seed=seed, unseen=unseen,
@@ -218,9 +207,7 @@ def train(
     bar = tqdm(range(steps), desc="needle_ends", disable=not progress)
     for step in bar:
         for g in opt.param_groups:
-            g["lr"] = (
-                lr * min(1.0, (step + 1) / warm) * 0.5 * (1 + math.cos(math.pi * step / steps))
-            )
+            g["lr"] = warmup_cosine_lr(step, steps, warm, lr)
         idx = torch.randint(len(x_tr), (batch,), generator=gen)
         x = jittered(x_tr[idx], gen, cfg.patch, turn_deg)
         x = hsv_jitter(x, gen, 0.5, 0.5, 0.4)

@@ -49,8 +49,9 @@ from bopsurg.models.data import (
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.pose.roi import crop, dzi_boxes
-from bopsurg.models.refine.fit import ArcModel
+from bopsurg.models.refine.fit import dataset_arc
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig, seg_loss
+from bopsurg.models.training import warmup_cosine_lr
 
 log = logging.getLogger(__name__)
 
@@ -206,14 +207,7 @@ def train(
     torch.set_num_threads(max(1, torch.get_num_threads()))
     ds = open_split(data, split)
     photometric = PhotometricConfig(**PhotometricConfig.preset_values(augment))
-    info = ds.models_info.get(1, {})
-    try:
-        kp = info["keypoints"]
-        arc = ArcModel.from_keypoints(kp["tail"], kp["tip"])
-    except (KeyError, ValueError) as err:
-        raise BopsurgError(
-            f"{ds.models_dir / 'models_info.json'}: obj 1 needs keypoints ({err})"
-        ) from err
+    arc = dataset_arc(ds, 1)
     train_ids, _ = split_scenes(ds)
     items = load_contexts(ds, train_ids, 1, progress, amodal=cfg.amodal, whole=cfg.frame == "whole")
     if not items:
@@ -229,7 +223,7 @@ def train(
     net.train()
     bar = tqdm(range(steps), desc="needle_seg", disable=not progress)
     for step in bar:
-        lr = 3e-3 * min(1.0, (step + 1) / warm) * 0.5 * (1 + math.cos(math.pi * step / steps))
+        lr = warmup_cosine_lr(step, steps, warm, 3e-3)
         for g in opt.param_groups:
             g["lr"] = lr
         idx = torch.randint(len(items), (batch,), generator=gen)

@@ -30,6 +30,7 @@ from bopsurg.models.refine.ends import (  # noqa: E402
     swapped,
 )
 from bopsurg.models.refine.fit import ArcModel  # noqa: E402
+from tests.models.cli_errors import one_line_error  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -204,10 +205,11 @@ def test_the_trainer_is_seeded_records_its_run_and_loads(dataset, tmp_path):
 
 def test_the_seen_ends_are_labelled_tip_and_tail(dataset):
     from bopsurg.bop.dataset import BopDataset
-    from bopsurg.models.refine.train_ends import collect_ends, needle_arc
+    from bopsurg.models.refine.fit import dataset_arc
+    from bopsurg.models.refine.train_ends import collect_ends
 
     ds = BopDataset(dataset, "train")
-    arc = needle_arc(ds, 1)
+    arc = dataset_arc(ds, 1)
     x, y = collect_ends(ds, ds.scene_ids, 1, arc, EndConfig(patch=16), progress=False)
     assert x.dtype == torch.uint8
     assert x.shape[1:] == (3, 32, 32)
@@ -221,9 +223,8 @@ def test_the_seen_ends_are_labelled_tip_and_tail(dataset):
 
 def test_trainer_errors_are_one_line(dataset, tmp_path, capsys):
     assert _train(dataset, tmp_path / "x", "--split", "nope") == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("error: ")
-    assert "nope" in err[-1]
+    err = one_line_error(capsys)
+    assert "nope" in err
 
 
 def test_estimator_options_switch_the_end_check(dataset, tmp_path):
