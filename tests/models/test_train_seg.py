@@ -13,6 +13,7 @@ torch = pytest.importorskip("torch")
 from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
 from bopsurg.models.checkpoint import load_checkpoint  # noqa: E402
 from bopsurg.models.refine.train_seg import main  # noqa: E402
+from tests.models.cli_errors import one_line_error  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -31,16 +32,23 @@ def _train(dataset, out, *extra: str) -> int:
     return main([*args, "--width", "4", "--no-progress", *extra])
 
 
-def test_seeded_two_splits_and_augmentation_recorded(dataset, tmp_path):
-    both = ("--split", "train,wide", "--augment", "domain")
-    assert _train(dataset, tmp_path / "a", *both) == 0
-    assert _train(dataset, tmp_path / "b", *both) == 0
+def _seeded_pair_and_plain(dataset, tmp_path, *extra: str):
+    """Two runs with ``extra`` (asserted equal) and one without (asserted different): the
+    checkpoint info of the first and of the plain run."""
+    for name in ("a", "b"):
+        assert _train(dataset, tmp_path / name, *extra) == 0
     assert _train(dataset, tmp_path / "plain") == 0
     a, info = load_checkpoint(tmp_path / "a" / "needle_seg.pt", "needle_seg")
     b, _ = load_checkpoint(tmp_path / "b" / "needle_seg.pt", "needle_seg")
     plain, plain_info = load_checkpoint(tmp_path / "plain" / "needle_seg.pt", "needle_seg")
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not all(torch.equal(a[k], plain[k]) for k in a)
+    return info, plain_info
+
+
+def test_seeded_two_splits_and_augmentation_recorded(dataset, tmp_path):
+    both = ("--split", "train,wide", "--augment", "domain")
+    info, plain_info = _seeded_pair_and_plain(dataset, tmp_path, *both)
     assert info["meta"]["split"] == "train,wide"
     assert info["meta"]["augment"] == "domain"
     assert info["meta"]["instances"] > plain_info["meta"]["instances"]  # both splits read
@@ -48,28 +56,18 @@ def test_seeded_two_splits_and_augmentation_recorded(dataset, tmp_path):
 
 
 def test_hue_shifts_are_seeded_recorded_and_checked(dataset, tmp_path, capsys):
-    for name in ("a", "b"):
-        assert _train(dataset, tmp_path / name, "--hue", "0.5") == 0
-    assert _train(dataset, tmp_path / "plain") == 0
-    a, info = load_checkpoint(tmp_path / "a" / "needle_seg.pt", "needle_seg")
-    b, _ = load_checkpoint(tmp_path / "b" / "needle_seg.pt", "needle_seg")
-    plain, plain_info = load_checkpoint(tmp_path / "plain" / "needle_seg.pt", "needle_seg")
-    assert all(torch.equal(a[k], b[k]) for k in a)
-    assert not all(torch.equal(a[k], plain[k]) for k in a)
+    info, plain_info = _seeded_pair_and_plain(dataset, tmp_path, "--hue", "0.5")
     assert info["meta"]["hue"] == 0.5
     assert "hue" not in plain_info["meta"]
     assert _train(dataset, tmp_path / "bad", "--hue", "0.7") == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("error: ")
-    assert "--hue" in err[-1]
+    assert "--hue" in one_line_error(capsys)
 
 
 def test_a_missing_split_is_one_line(dataset, tmp_path, capsys):
     assert _train(dataset, tmp_path / "x", "--split", "train,nope") == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("error: ")
-    assert "nope" in err[-1]
-    assert "split folder not found" in err[-1]
+    err = one_line_error(capsys)
+    assert "nope" in err
+    assert "split folder not found" in err
 
 
 def test_amodal_fine_tune_from_a_visible_mask_segmenter(dataset, tmp_path):
@@ -132,6 +130,4 @@ def test_whole_frame_contexts_hold_the_full_mask_and_need_it(dataset, tmp_path, 
     with pytest.raises(ValueError, match="amodal"):
         load_contexts(ds, ds.scene_ids, 1, False, whole=True)
     assert _train(dataset, tmp_path / "bad", "--frame", "whole") == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("error: ")
-    assert "amodal" in err[-1]
+    assert "amodal" in one_line_error(capsys)

@@ -1,0 +1,10 @@
+"""What a trainer's command line must print on a user mistake: one line, ``error: ...``."""
+
+from __future__ import annotations
+
+
+def one_line_error(capsys) -> str:
+    """The last stderr line captured so far, checked to be the CLI's one-line error."""
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: ")
+    return err[-1]
