@@ -22,12 +22,9 @@ import json
 import shutil
 from pathlib import Path
 
-from bench_transfer import evaluate, run
+from benchlib import FLIP_DEG, add_predict_option, evaluate, predict_options, run
 
 from bopsurg.mirror import mirror_split
-
-#: RE above which a needle's tip and tail count as swapped, deg.
-FLIP_DEG = 90.0
 
 
 def main() -> None:
@@ -38,13 +35,7 @@ def main() -> None:
     ap.add_argument("--split", default="test")
     ap.add_argument("--out", type=Path, required=True, help="work folder (rewritten)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument(
-        "--predict-option",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="passed to bopsurg predict --option (e.g. pose=runs/pose/pose.pt)",
-    )
+    add_predict_option(ap, "pose=runs/pose/pose.pt")
     args = ap.parse_args()
     out = args.out
     shutil.rmtree(out, ignore_errors=True)
@@ -53,7 +44,7 @@ def main() -> None:
     rep = mirror_split(args.data, mirrored, args.split, progress=False)
     print(f"mirrored {rep.images} images, {rep.instances} instances -> {mirrored}")
 
-    options = [x for o in args.predict_option for x in ("--option", o)]
+    options = predict_options(args.predict_option)
     report: dict = {"data": str(args.data), "split": args.split, "options": args.predict_option}
     faces = (
         ("source", "the split's face", args.data),

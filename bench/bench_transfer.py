@@ -20,46 +20,18 @@ SRC is not part of bopsurg (development data of the team; never train on it).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
+from benchlib import add_predict_option, evaluate, oracle_boxes, predict_options, run
 
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.detections import gt_detections, save_detections
-from bopsurg.cli.main import main as bopsurg
 from bopsurg.evaluation.summary import format_table
 
 #: The paper's GDRNPP on its own AMBF test set: label, median RE (deg), TE and MSSD (mm).
 PAPER_AMBF = ("paper: GDRNPP on its own AMBF test set", 7.74, 1.49, 1.43)
-
-
-def run(argv: list[str], *, quiet: bool = False) -> float:
-    """One bopsurg command; returns its wall time in s. ``quiet``: drop what it prints (its
-    log lines, e.g. the model-frame mapping, still go to stderr)."""
-    t0 = time.perf_counter()
-    with contextlib.redirect_stdout(io.StringIO()) if quiet else contextlib.nullcontext():
-        code = bopsurg(argv)
-    if code:
-        raise SystemExit(f"bopsurg {' '.join(argv)} failed with exit code {code}")
-    return time.perf_counter() - t0
-
-
-def evaluate(data: Path, results: Path, ev: Path, *, split: str = "test") -> dict:
-    """Evaluate; returns summary, scores and the per-estimate errors."""
-    shutil.rmtree(ev, ignore_errors=True)
-    argv = ["eval", str(data), str(results), "--split", split, "--out", str(ev), "--no-progress"]
-    run(argv, quiet=True)
-    return {
-        "summary": json.loads((ev / "summary.json").read_text()),
-        "scores": json.loads((ev / "scores.json").read_text()),
-        "errors": pd.read_csv(ev / "errors.csv"),
-    }
 
 
 def main() -> None:
@@ -70,13 +42,7 @@ def main() -> None:
     ap.add_argument("--model", default=None, help="its needle PLY (default: SRC/Needle.ply)")
     ap.add_argument("--out", required=True, help="work folder (rewritten)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument(
-        "--predict-option",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="passed to bopsurg predict --option (e.g. decode=pnp)",
-    )
+    add_predict_option(ap, "decode=pnp")
     args = ap.parse_args()
     src, out = Path(args.src), Path(args.out)
     model = Path(args.model) if args.model else src / "Needle.ply"
@@ -95,10 +61,8 @@ def main() -> None:
     depth = np.array([g[0].t[2] for g in gts.values()])
     print(f"needle depth t_z: {depth.min():.1f}-{depth.max():.1f} mm over {len(gts)} frames")
 
-    options = [x for o in args.predict_option for x in ("--option", o)]
-    boxes = out / "oracle_boxes.json"
-    dets = gt_detections(ds)
-    save_detections(boxes, dets, dict.fromkeys(dets, 0.0))
+    options = predict_options(args.predict_option)
+    boxes = oracle_boxes(data, "test", out / "oracle_boxes.json")
     runs = {
         "shipped model": [],
         "shipped pose head on oracle GT visible boxes": ["--boxes", str(boxes)],

@@ -1,0 +1,68 @@
+"""What the estimator benches share: running a bopsurg command in-process, evaluating a
+results file, the ``--predict-option`` argument and oracle boxes."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import shutil
+import time
+from pathlib import Path
+
+import pandas as pd
+
+from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.detections import gt_detections, save_detections
+from bopsurg.cli.main import main as bopsurg
+
+#: RE above which a needle's tip and tail count as swapped, deg.
+FLIP_DEG = 90.0
+
+
+def run(argv: list[str], *, quiet: bool = False) -> float:
+    """One bopsurg command; returns its wall time in s. ``quiet``: drop what it prints (its
+    log lines, e.g. the model-frame mapping, still go to stderr)."""
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(io.StringIO()) if quiet else contextlib.nullcontext():
+        code = bopsurg(argv)
+    if code:
+        raise SystemExit(f"bopsurg {' '.join(argv)} failed with exit code {code}")
+    return time.perf_counter() - t0
+
+
+def evaluate(data: Path, results: Path, ev: Path, *, split: str = "test") -> dict:
+    """Evaluate; returns summary, scores and the per-estimate errors."""
+    shutil.rmtree(ev, ignore_errors=True)
+    argv = ["eval", str(data), str(results), "--split", split, "--out", str(ev), "--no-progress"]
+    run(argv, quiet=True)
+    return {
+        "summary": json.loads((ev / "summary.json").read_text()),
+        "scores": json.loads((ev / "scores.json").read_text()),
+        "errors": pd.read_csv(ev / "errors.csv"),
+    }
+
+
+def add_predict_option(ap: argparse.ArgumentParser, example: str) -> None:
+    """``--predict-option KEY=VALUE`` (repeatable): passed on to ``bopsurg predict --option``."""
+    ap.add_argument(
+        "--predict-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"passed to bopsurg predict --option (e.g. {example})",
+    )
+
+
+def predict_options(options: list[str]) -> list[str]:
+    """``bopsurg predict`` arguments for ``--predict-option`` values."""
+    return [x for o in options for x in ("--option", o)]
+
+
+def oracle_boxes(data: Path, split: str, path: Path) -> Path:
+    """Write the GT visible boxes of a split as detections (score 1) to ``path``: a pose
+    stage run on them is measured without its detector's misses."""
+    dets = gt_detections(BopDataset(data, split))
+    save_detections(path, dets, dict.fromkeys(dets, 0.0))
+    return path
