@@ -183,7 +183,8 @@ class GdrNetEstimator:
         ends: Needle-end classifier checkpoint, or None: after the refinement, a needle pose
             whose tip looks less like a tip than its tail is turned end for end
             (:mod:`bopsurg.models.refine.ends`).
-        ends_margin: The logit margin the tail must win by.
+        ends_margin: The logit margin the tail must win by; None: the one recorded with the
+            classifier (its checkpoint's ``meta.margin``, else 0).
     """
 
     def __init__(
@@ -201,7 +202,7 @@ class GdrNetEstimator:
         zoom: tuple[float, ...] = ZOOM_SCALES,
         recrop: float = RECROP_GROWTH,
         ends: str | Path | None = None,
-        ends_margin: float = 0.0,
+        ends_margin: float | None = None,
     ) -> None:
         if decode not in ("direct", "pnp"):
             raise BopsurgError(f"decode must be 'direct' or 'pnp', got {decode!r}")
@@ -273,7 +274,10 @@ class GdrNetEstimator:
             )
         if self.ends is not None:
             st_e = self.ends.stats
-            lines.append(f"end check turned {st_e.swapped} of {st_e.checked} needles end for end")
+            lines.append(
+                f"end check (margin {self.ends.margin:g}) turned {st_e.swapped} of "
+                f"{st_e.checked} needles end for end"
+            )
         return "; ".join(lines) or None
 
     def _select(self, boxes: Detections, obj_ids: tuple[int, ...]) -> Detections:
@@ -458,7 +462,8 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     of the box's longer side by the segmenter's visible mask that runs the needle's ROI again
     on the grown box; default :data:`RECROP_GROWTH`, ``0`` off), ``ends`` (the needle-end
     classifier's checkpoint, or ``none``; default: the shipped one when it exists) and
-    ``ends_margin`` (the logit margin a swap needs, default 0).
+    ``ends_margin`` (the logit margin a swap needs; default: the one recorded with the
+    classifier, chosen on validation splits).
     """
     known = {"detector", "pose", "device", "conf", "max_per_object", "decode", "no_detector"}
     known |= {"refine", "segmenter", "mask", "min_explained", "zoom", "recrop", "ends"}
@@ -475,10 +480,10 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         max_per = int(options.get("max_per_object", 1))
         min_explained = float(options.get("min_explained", FitSettings.min_explained))
         recrop = float(options.get("recrop", RECROP_GROWTH))
-        ends_margin = float(options.get("ends_margin", 0.0))
+        ends_margin = float(options["ends_margin"]) if "ends_margin" in options else None
     except ValueError as err:
         raise BopsurgError(f"gdrnet: bad option value ({err})") from err
-    if not np.isfinite(ends_margin):
+    if ends_margin is not None and not np.isfinite(ends_margin):
         raise BopsurgError(f"gdrnet: ends_margin must be a finite logit margin, got {ends_margin}")
     try:
         zoom = tuple(map(float, str(options["zoom"]).split(","))) if "zoom" in options else ()

@@ -201,9 +201,14 @@ class EndJudge:
         return np.where(swap[:, None, None], swapped(R, self.arc), R), swap
 
 
-def load_judge(path: str | Path, device: torch.device, margin: float = 0.0) -> EndJudge:
-    """The end classifier of a ``needle_ends`` checkpoint (written by :mod:`.train_ends`)."""
+def load_judge(path: str | Path, device: torch.device, margin: float | None = None) -> EndJudge:
+    """The end classifier of a ``needle_ends`` checkpoint (written by :mod:`.train_ends`).
+
+    ``margin`` (logits) overrides the one recorded with the classifier (its ``meta.margin``,
+    chosen on validation splits with ``bench/bench_ends.py``; 0 when none is recorded)."""
     state, info = load_checkpoint(path, "needle_ends")
+    if margin is None:
+        margin = float(info["meta"].get("margin", 0.0))
     cfg = EndConfig.from_dict(info["config"])
     net = EndNet(cfg)
     load_weights(net, state, path)

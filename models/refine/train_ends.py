@@ -15,7 +15,10 @@ with warm-up and cosine decay; deterministic for a seed. Held-out scenes of the 
 estimators' :func:`~bopsurg.models.data.split_scenes`) give the validation accuracy on seen
 ends.
 
-Writes OUT/needle_ends.pt and its JSON (config, the needle arc, recipe, seed, accuracy).
+Writes OUT/needle_ends.pt and its JSON (config, the needle arc, recipe, seed, accuracy, and
+``--margin``: the logit margin a swap needs when the estimator runs this classifier without
+an ``ends_margin`` option; choose it on validation splits with ``bench/bench_ends.py``, the
+smallest margin at which the classifier turns none of their right poses).
 """
 
 from __future__ import annotations
@@ -175,9 +178,13 @@ def train(
     max_instances: int | None = None,
     unseen: bool = True,
     cfg: EndConfig | None = None,
+    margin: float = 0.0,
     progress: bool = True,
 ) -> Path:
-    """Train and write OUT/needle_ends.pt; returns its path."""
+    """Train and write OUT/needle_ends.pt; returns its path. ``margin`` (logits) is recorded
+    as the classifier's default decision margin (:func:`.ends.load_judge`)."""
+    if not math.isfinite(margin):
+        raise BopsurgError(f"--margin must be a finite logit margin, got {margin}")
     cfg = cfg or EndConfig()
     torch.manual_seed(seed)
     ds = open_split(data, split)
@@ -229,6 +236,7 @@ def train(
         "ends": len(x_tr),
         "val_ends": len(x_va),
         "val_accuracy": round(acc, 4),
+        "margin": margin,
         "recipe": {
             "steps": steps, "batch": batch, "lr": lr, "seed": seed, "turn_deg": turn_deg,
             "max_instances": max_instances, "unseen": unseen,
@@ -264,6 +272,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--patch", type=int, default=EndConfig.patch, help="patch side, px")
     ap.add_argument("--scale", type=float, default=EndConfig.scale,
                     help="patch side / the arc's projected radius")  # fmt: skip
+    ap.add_argument(
+        "--margin",
+        type=float,
+        default=0.0,
+        help="logit margin a swap needs, recorded as the classifier's default (choose it on "
+        "validation splits with bench/bench_ends.py; default 0)",
+    )
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -272,7 +287,8 @@ def main(argv: list[str] | None = None) -> int:
             args.dataset, args.out, split=args.split, steps=args.steps, batch=args.batch,
             lr=args.lr, seed=args.seed, turn_deg=args.turn, max_instances=args.max_instances,
             unseen=not args.seen_only,
-            cfg=EndConfig(patch=args.patch, scale=args.scale), progress=not args.no_progress,
+            cfg=EndConfig(patch=args.patch, scale=args.scale), margin=args.margin,
+            progress=not args.no_progress,
         )  # fmt: skip
     except (BopsurgError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)  # noqa: T201 (the CLI's one-line error)

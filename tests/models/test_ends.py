@@ -201,6 +201,18 @@ def test_the_trainer_is_seeded_records_its_run_and_loads(dataset, tmp_path):
     assert 0.0 <= info["meta"]["val_accuracy"] <= 1.0
     judge = load_judge(tmp_path / "a" / "needle_ends.pt", torch.device("cpu"))
     assert judge.arc.radius == pytest.approx(ARC.radius, rel=1e-6)
+    assert judge.margin == 0.0  # none chosen
+
+
+def test_the_margin_chosen_for_a_classifier_travels_with_it(dataset, tmp_path):
+    assert _train(dataset, tmp_path / "m", "--margin", "2.5") == 0
+    path = tmp_path / "m" / "needle_ends.pt"
+    assert load_checkpoint(path, "needle_ends")[1]["meta"]["margin"] == 2.5
+    assert load_judge(path, torch.device("cpu")).margin == 2.5
+    assert load_judge(path, torch.device("cpu"), margin=1.0).margin == 1.0
+    opts = {"no_detector": "1", "refine": "none", "ends": str(path), "device": "cpu"}
+    assert create(opts).ends.margin == 2.5  # the classifier's own
+    assert create({**opts, "ends_margin": "0"}).ends.margin == 0.0  # the user's
 
 
 def test_the_seen_ends_are_labelled_tip_and_tail(dataset):
@@ -225,6 +237,9 @@ def test_trainer_errors_are_one_line(dataset, tmp_path, capsys):
     assert _train(dataset, tmp_path / "x", "--split", "nope") == 2
     err = one_line_error(capsys)
     assert "nope" in err
+    assert _train(dataset, tmp_path / "y", "--margin", "nan") == 2
+    assert "--margin" in one_line_error(capsys)
+    assert not (tmp_path / "y").exists()
 
 
 def test_estimator_options_switch_the_end_check(dataset, tmp_path):
