@@ -36,7 +36,8 @@ import torch.nn.functional as F
 from numpy.typing import NDArray
 from torch import nn
 
-from bopsurg.models.checkpoint import load_checkpoint, load_weights
+from bopsurg.errors import CheckpointError
+from bopsurg.models.checkpoint import config_path, load_checkpoint, load_weights
 from bopsurg.models.refine.fit import ArcModel
 
 F64 = NDArray[np.float64]
@@ -209,6 +210,8 @@ def load_judge(path: str | Path, device: torch.device, margin: float | None = No
     state, info = load_checkpoint(path, "needle_ends")
     if margin is None:
         margin = float(info["meta"].get("margin", 0.0))
+        if not np.isfinite(margin):  # NaN would silently never swap
+            raise CheckpointError(f"{config_path(path)}: meta.margin must be a finite logit margin")
     cfg = EndConfig.from_dict(info["config"])
     net = EndNet(cfg)
     load_weights(net, state, path)

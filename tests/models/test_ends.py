@@ -213,6 +213,13 @@ def test_the_margin_chosen_for_a_classifier_travels_with_it(dataset, tmp_path):
     opts = {"no_detector": "1", "refine": "none", "ends": str(path), "device": "cpu"}
     assert create(opts).ends.margin == 2.5  # the classifier's own
     assert create({**opts, "ends_margin": "0"}).ends.margin == 0.0  # the user's
+    info = load_checkpoint(path, "needle_ends")[1]
+    save_checkpoint(
+        path, load_checkpoint(path, "needle_ends")[0], kind="needle_ends",
+        config=info["config"], meta={**info["meta"], "margin": float("nan")},
+    )  # fmt: skip
+    with pytest.raises(BopsurgError, match=r"meta\.margin"):
+        load_judge(path, torch.device("cpu"))
 
 
 def test_the_seen_ends_are_labelled_tip_and_tail(dataset):
