@@ -22,45 +22,46 @@ paper's AMBF frames of bench_transfer.py: give their folders as DATA).
 
 from __future__ import annotations
 
-import argparse
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
-from benchlib import FLIP_DEG, add_predict_option, evaluate, oracle_boxes, predict_options, run
+from benchlib import (
+    FLIP_DEG,
+    fresh_dir,
+    oracle_boxes,
+    predict_eval,
+    predict_options,
+    split_bench_parser,
+    table_needles,
+)
 
-from bopsurg.bop.results import load_results
+from bopsurg.bop.results import PoseEstimates, load_results
 
 #: Estimate-row keys that pair the rows of two runs on the same boxes.
 KEYS = ("scene_id", "im_id", "obj_id")
 
 
-def turned(a: Path, b: Path) -> np.ndarray:
-    """Which estimates of results file ``b`` are those of ``a`` turned by more than 90 deg
-    (the end check's half turn is 180 deg); the two runs must hold the same rows."""
-    ra, rb = load_results(a), load_results(b)
-    same = len(ra) == len(rb) and all(np.array_equal(getattr(ra, k), getattr(rb, k)) for k in KEYS)
+def turned(base: PoseEstimates, path: Path) -> np.ndarray:
+    """Which estimates of results file ``path`` are those of ``base`` turned by more than
+    90 deg (the end check's half turn is 180 deg); the two runs must hold the same rows."""
+    other = load_results(path)
+    same = len(base) == len(other) and all(
+        np.array_equal(getattr(base, k), getattr(other, k)) for k in KEYS
+    )
     if not same:
-        raise SystemExit(f"{b}: its estimates are not the rows of {a}; cannot pair them")
-    cos = (np.einsum("nij,nij->n", ra.R, rb.R) - 1.0) / 2.0  # cos of the relative angle
+        raise SystemExit(f"{path}: its estimates are not the rows of the run without the check")
+    cos = (np.einsum("nij,nij->n", base.R, other.R) - 1.0) / 2.0  # cos of the relative angle
     return cos < np.cos(np.radians(FLIP_DEG))
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    ap.add_argument("data", type=Path, help="BOP dataset root")
-    ap.add_argument("--split", default="test")
+    ap = split_bench_parser(__doc__, "BOP dataset root", "pose=runs/pose/pose.pt")
     ap.add_argument("--ends", type=Path, required=True, help="needle_ends.pt checkpoint")
     ap.add_argument("--margins", default="0,1,2,3", help="comma-separated logit margins")
-    ap.add_argument("--out", type=Path, required=True, help="work folder (rewritten)")
-    ap.add_argument("--device", default="cpu")
     ap.add_argument(
         "--oracle-boxes", action="store_true", help="the GT visible boxes, not the detector's"
     )
-    add_predict_option(ap, "pose=runs/pose/pose.pt")
     args = ap.parse_args()
     if not args.ends.is_file():
         raise SystemExit(f"--ends {args.ends}: no such checkpoint")
@@ -68,9 +69,7 @@ def main() -> None:
         margins = [float(m) for m in args.margins.split(",")]
     except ValueError:
         raise SystemExit(f"--margins {args.margins!r}: give numbers, e.g. 0,1,2,3") from None
-    out = args.out
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
+    out = fresh_dir(args.out)
     extra = predict_options(args.predict_option)
     if args.oracle_boxes:
         extra += ["--boxes", str(oracle_boxes(args.data, args.split, out / "oracle_boxes.json"))]
@@ -82,23 +81,22 @@ def main() -> None:
         "data": str(args.data), "split": args.split, "ends": str(args.ends),
         "options": args.predict_option, "oracle_boxes": args.oracle_boxes, "runs": {},
     }  # fmt: skip
-    base_flip = None
+    base: PoseEstimates | None = None
     head = f"{'':<12}{'N':>5}{'RE med':>8}{'TE med':>8}{'MSSD med':>9}{'RE mean':>8}"
     lines = [f"\n{head}{f'RE>{FLIP_DEG:g}':>8}{'AR_MSSD':>9}{'turned':>8}{'mended':>8}{'broke':>7}"]
     for i, (name, opts) in enumerate(runs.items()):
-        results = out / f"results_{i}.csv"
-        t = run(
-            ["predict", str(args.data), "--split", args.split, "--out", str(results),
-             "--device", args.device, "--no-progress", *extra, *opts], quiet=True,
-        )  # fmt: skip
-        ev = evaluate(args.data, results, out / f"eval_{i}", split=args.split)
-        errs = ev.pop("errors")
-        kept = errs[(errs.visib_fract >= ev["summary"]["min_visib"]) & (errs.gt_id >= 0)]
-        flip = kept.set_index([*KEYS, "gt_id"]).re > FLIP_DEG
-        if base_flip is None:
-            base_flip, n_turned, mended, broke = flip, 0, 0, 0
+        ev, errs, t = predict_eval(args.data, args.split, out, str(i), args.device, [*extra, *opts])
+        flip = table_needles(ev, errs).set_index([*KEYS, "gt_id"]).re > FLIP_DEG
+        if base is None:  # the run without the check: what the others are compared with
+            base, base_flip, n_turned, mended, broke = (
+                load_results(out / "results_0.csv"),
+                flip,
+                0,
+                0,
+                0,
+            )
         else:
-            n_turned = int(turned(out / "results_0.csv", results).sum())
+            n_turned = int(turned(base, out / f"results_{i}.csv").sum())
             before = base_flip.reindex(flip.index, fill_value=False)
             mended, broke = int((before & ~flip).sum()), int((~before & flip).sum())
         tab, ar = ev["summary"]["table"], ev["scores"]["bop19_average_recall_mssd"]

@@ -17,29 +17,26 @@ this measures what a model does with that face without any data but ours:
 
 from __future__ import annotations
 
-import argparse
 import json
-import shutil
-from pathlib import Path
 
-from benchlib import FLIP_DEG, add_predict_option, evaluate, predict_options, run
+from benchlib import (
+    FLIP_DEG,
+    fresh_dir,
+    predict_eval,
+    predict_options,
+    split_bench_parser,
+    table_needles,
+)
 
 from bopsurg.mirror import mirror_split
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    ap = split_bench_parser(
+        __doc__, "BOP dataset root with a held-out split", "pose=runs/pose/pose.pt"
     )
-    ap.add_argument("data", type=Path, help="BOP dataset root with a held-out split")
-    ap.add_argument("--split", default="test")
-    ap.add_argument("--out", type=Path, required=True, help="work folder (rewritten)")
-    ap.add_argument("--device", default="cpu")
-    add_predict_option(ap, "pose=runs/pose/pose.pt")
     args = ap.parse_args()
-    out = args.out
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
+    out = fresh_dir(args.out)
     mirrored = out / "mirrored"
     rep = mirror_split(args.data, mirrored, args.split, progress=False)
     print(f"mirrored {rep.images} images, {rep.instances} instances -> {mirrored}")
@@ -53,15 +50,8 @@ def main() -> None:
     head = f"{'':<28}{'N':>5}{'RE med':>8}{'TE med':>8}{'MSSD med':>9}{'TE mean':>8}"
     lines = [f"\n{head}{f'RE>{FLIP_DEG:g}':>8}{'AR_MSSD':>9}"]
     for key, label, data in faces:
-        results = out / f"results_{key}.csv"
-        t = run(
-            ["predict", str(data), "--split", args.split, "--out", str(results),
-             "--device", args.device, "--no-progress", *options], quiet=True,
-        )  # fmt: skip
-        ev = evaluate(data, results, out / f"eval_{key}", split=args.split)
-        errs = ev.pop("errors")
-        kept = errs.visib_fract >= ev["summary"]["min_visib"]  # the GT the table counts
-        flipped = float((errs[kept].re > FLIP_DEG).mean())
+        ev, errs, t = predict_eval(data, args.split, out, key, args.device, options)
+        flipped = float((table_needles(ev, errs).re > FLIP_DEG).mean())
         report[key] = {**ev, "flipped": flipped, "predict_s": t}
         tab, ar = ev["summary"]["table"], ev["scores"]["bop19_average_recall_mssd"]
         lines.append(

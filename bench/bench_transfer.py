@@ -21,11 +21,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
-from benchlib import add_predict_option, evaluate, oracle_boxes, predict_options, run
+from benchlib import add_predict_option, fresh_dir, oracle_boxes, predict_eval, predict_options, run
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.evaluation.summary import format_table
@@ -47,8 +46,7 @@ def main() -> None:
     src, out = Path(args.src), Path(args.out)
     model = Path(args.model) if args.model else src / "Needle.ply"
     data = out / "data"
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
+    fresh_dir(out)
     report: dict = {"src": str(src), "model": str(model)}
 
     report["import_s"] = run(
@@ -68,13 +66,7 @@ def main() -> None:
         "shipped pose head on oracle GT visible boxes": ["--boxes", str(boxes)],
     }
     for i, (name, extra) in enumerate(runs.items()):
-        results = out / f"results_{i}.csv"
-        t = run(
-            ["predict", str(data), "--out", str(results), "--device", args.device,
-             "--no-progress", *options, *extra], quiet=True
-        )  # fmt: skip
-        ev = evaluate(data, results, out / f"eval_{i}")
-        errs = ev.pop("errors")
+        ev, errs, t = predict_eval(data, "test", out, str(i), args.device, [*options, *extra])
         report[name] = {**ev, "predict_s": t}
         print(f"\n== {name} ==\n{format_table(ev['summary'], ev['scores'])}")
         print(f"\n{'frame':>6}{'t_z mm':>9}{'RE deg':>9}{'TE mm':>8}{'MSSD mm':>9}")

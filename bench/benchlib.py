@@ -1,5 +1,6 @@
-"""What the estimator benches share: running a bopsurg command in-process, evaluating a
-results file, the ``--predict-option`` argument and oracle boxes."""
+"""What the estimator benches share: running a bopsurg command in-process, predict + eval of a
+split, the arguments of a bench on a dataset split (``--predict-option`` among them), the
+needles the paper's table counts, and oracle boxes."""
 
 from __future__ import annotations
 
@@ -42,6 +43,48 @@ def evaluate(data: Path, results: Path, ev: Path, *, split: str = "test") -> dic
         "scores": json.loads((ev / "scores.json").read_text()),
         "errors": pd.read_csv(ev / "errors.csv"),
     }
+
+
+def predict_eval(
+    data: Path, split: str, out: Path, key: str, device: str, argv: list[str]
+) -> tuple[dict, pd.DataFrame, float]:
+    """``bopsurg predict`` (extra arguments ``argv``) into OUT/results_KEY.csv, then ``bopsurg
+    eval`` into OUT/eval_KEY. Returns the evaluation (summary, scores), its per-estimate
+    errors and the prediction's wall time in s."""
+    results = out / f"results_{key}.csv"
+    seconds = run(
+        ["predict", str(data), "--split", split, "--out", str(results), "--device", device,
+         "--no-progress", *argv], quiet=True,
+    )  # fmt: skip
+    ev = evaluate(data, results, out / f"eval_{key}", split=split)
+    return ev, ev.pop("errors"), seconds
+
+
+def table_needles(ev: dict, errors: pd.DataFrame) -> pd.DataFrame:
+    """The matched estimates of the GT instances the paper's table counts (visib_fract >= the
+    evaluation's min_visib)."""
+    return errors[(errors.visib_fract >= ev["summary"]["min_visib"]) & (errors.gt_id >= 0)]
+
+
+def split_bench_parser(doc: str | None, data_help: str, example: str) -> argparse.ArgumentParser:
+    """The arguments of a bench on a dataset split: DATA, --split, --out, --device and
+    ``--predict-option``."""
+    ap = argparse.ArgumentParser(
+        description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("data", type=Path, help=data_help)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--out", type=Path, required=True, help="work folder (rewritten)")
+    ap.add_argument("--device", default="cpu")
+    add_predict_option(ap, example)
+    return ap
+
+
+def fresh_dir(path: Path) -> Path:
+    """``path`` emptied (a bench's work folder is rewritten)."""
+    shutil.rmtree(path, ignore_errors=True)
+    path.mkdir(parents=True)
+    return path
 
 
 def add_predict_option(ap: argparse.ArgumentParser, example: str) -> None:
