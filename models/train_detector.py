@@ -51,6 +51,8 @@ class DetectorRecipe:
     #: :func:`~bopsurg.models.detector.augment.hsv_jitter`). A hue of 0.5 spins the whole
     #: colour circle: tissue of any colour, for targets whose phantom is not ours.
     hsv: tuple[float, float, float] = (0.015, 0.7, 0.4)
+    #: Share of the images whose hue turns by any amount instead of ``hsv[0]`` (ours kept).
+    hue_whole: float = 0.0
     min_visib: float = 0.1
     val_every: int = 5
     augment: PhotometricConfig = field(default_factory=PhotometricConfig)
@@ -155,7 +157,12 @@ def train_detector(
     )  # fmt: skip
     legacy = {
         "model": preset_cfg.to_dict(),
-        "recipe": {"augment": asdict(PhotometricConfig()), "init": "", "hsv": [0.015, 0.7, 0.4]},
+        "recipe": {
+            "augment": asdict(PhotometricConfig()),
+            "init": "",
+            "hsv": [0.015, 0.7, 0.4],
+            "hue_whole": 0.0,
+        },
     }
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
     write_config(out, resolved("detector", preset, seed, cfg, recipe, loader))
@@ -195,7 +202,7 @@ def _step_fn(
     def step(batch: DetectionBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
         images = batch.images.to(dev).float() / 255
         targets = [t.to(dev) for t in batch.targets]
-        images = hsv_jitter(images, gen, *recipe.hsv)
+        images = hsv_jitter(images, gen, *recipe.hsv, whole=recipe.hue_whole)
         images, targets = random_flip(images, targets, gen, p=recipe.flip)
         images, targets = random_affine(
             images, targets, gen, scale=recipe.scale, translate=recipe.translate

@@ -65,6 +65,9 @@ class PoseRecipe:
     anneal_from: float = 0.72
     min_visib: float = 0.1
     hsv: tuple[float, float, float] = (0.015, 0.5, 0.4)
+    #: Share of the samples whose hue turns by any amount (the whole colour circle) instead
+    #: of ``hsv[0]``: tissue of other colours without losing how ours looks.
+    hue_whole: float = 0.0
     val_every: int = 5
     symmetric: bool = False
     augment: PhotometricConfig = field(default_factory=PhotometricConfig)
@@ -156,10 +159,12 @@ def roi_batch(
     hsv: tuple[float, float, float] = (0.015, 0.5, 0.4),
     augment: PhotometricConfig | None = None,
     seeds: list[int] | None = None,
+    hue_whole: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-    """Network inputs and loss targets of a batch of instances; train-time jitter (DZI and
-    HSV colour, amplitudes ``hsv``, then the photometric ``augment`` seeded per sample by
-    ``seeds``) when ``gen`` is given, test-time crops when None."""
+    """Network inputs and loss targets of a batch of instances; train-time jitter when
+    ``gen`` is given (DZI; HSV colour, amplitudes ``hsv``, the whole hue circle for a share
+    ``hue_whole``; then the photometric ``augment`` seeded per sample by ``seeds``),
+    test-time crops when None."""
     H, W = (int(v) for v in data.image_hw[0])
     box = data.bbox.to(device)
     box_xywh = torch.cat([box[:, :2] - 0.5, box[:, 2:]], dim=1)  # pixel-centre convention
@@ -170,7 +175,7 @@ def roi_batch(
     rgb = data.rgb.to(device).float() / 255
     roi_img = crop(rgb, c_centre, c_side, cfg.roi_in, "bilinear")
     if gen is not None:
-        roi_img = hsv_jitter(roi_img, gen, *hsv)
+        roi_img = hsv_jitter(roi_img, gen, *hsv, whole=hue_whole)
         if augment is not None and seeds is not None:
             roi_img = augment_batch(roi_img, augment, seeds)
     mask_full = data.mask[:, None].to(device).float()
@@ -299,6 +304,7 @@ def train_pose(
             "init": "",
             "mirror": 0.0,
             "mirror_splits": [],
+            "hue_whole": 0.0,
         },
     }
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
@@ -381,7 +387,7 @@ def _step_fn(
             batch = mirror_batch(batch, flip, reflection)
         seeds = batch_seeds(seed, epoch, batch.idx)
         roi_img, coord2d, target = roi_batch(
-            batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds
+            batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds, recipe.hue_whole
         )
         return gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
 

@@ -366,6 +366,21 @@ def test_hsv_conversion_round_trip_and_jitter():
     assert not torch.allclose(out, images, atol=1e-3)
 
 
+def test_hsv_jitter_spins_the_whole_hue_circle_for_its_share_only():
+    """``whole``: that share of the images gets any hue, the rest keep ``h``'s small shift;
+    0 draws nothing more, so older recipes see the same colours."""
+    red = torch.zeros(2000, 3, 2, 2)
+    red[:, 0] = 1.0
+    same = hsv_jitter(red, torch.Generator().manual_seed(1), 0.015, 0.7, 0.4)
+    assert torch.equal(same, hsv_jitter(red, torch.Generator().manual_seed(1), whole=0.0))
+    hue = rgb_to_hsv(hsv_jitter(red, torch.Generator().manual_seed(1), 0.0, 0, 0, 0.3))
+    turn = torch.minimum(hue[:, 0, 0, 0], 1 - hue[:, 0, 0, 0])  # distance from red, turns
+    spun = turn > 1e-4
+    assert 0.25 < spun.float().mean() < 0.35
+    counts = torch.histc(hue[spun, 0, 0, 0], bins=4, min=0, max=1)
+    assert counts.min() > 0.15 * spun.sum()  # every quarter of the circle
+
+
 # --------------------------------------------------------------------------------------- EMA
 def test_ema_lies_between_and_round_trips():
     torch.manual_seed(0)

@@ -52,17 +52,28 @@ def hsv_to_rgb(hsv: Tensor) -> Tensor:
 
 
 def hsv_jitter(
-    images: Tensor, gen: torch.Generator, h: float = 0.015, s: float = 0.7, v: float = 0.4
+    images: Tensor,
+    gen: torch.Generator,
+    h: float = 0.015,
+    s: float = 0.7,
+    v: float = 0.4,
+    whole: float = 0.0,
 ) -> Tensor:
     """Random colour change per image.
 
-    Hue is shifted by U(−h, h) turns; saturation and value are multiplied by U(1 − s, 1 + s)
-    and U(1 − v, 1 + v), then clipped to [0, 1]. images (B, 3, H, W) -> same shape.
+    Hue is shifted by U(−h, h) turns, or, for a share ``whole`` of the images, by U(−0.5, 0.5)
+    (the whole colour circle: most images keep their usual colours, the rest show tissue of
+    any colour); saturation and value are multiplied by U(1 − s, 1 + s) and U(1 − v, 1 + v),
+    then clipped to [0, 1]. images (B, 3, H, W) -> same shape. ``whole = 0`` draws nothing
+    more, so the draws of older recipes are unchanged.
     """
     bsz = images.shape[0]
-    dh = _uniform(gen, (bsz,), -h, h).to(images)
+    dh = _uniform(gen, (bsz,), -h, h)
     gains = torch.stack((_uniform(gen, (bsz,), -s, s), _uniform(gen, (bsz,), -v, v)), 1) + 1
-    gains = gains.to(images)
+    if whole > 0:
+        spin = _uniform(gen, (bsz,), 0.0, 1.0) < whole
+        dh = torch.where(spin, _uniform(gen, (bsz,), -0.5, 0.5), dh)
+    dh, gains = dh.to(images), gains.to(images)
     hsv = rgb_to_hsv(images.clamp(0, 1))
     hue = (hsv[:, 0] + dh[:, None, None]) % 1.0
     sv = (hsv[:, 1:] * gains[:, :, None, None]).clamp(0, 1)

@@ -192,6 +192,7 @@ def train(
     augment: str = "off",
     init: Path | None = None,
     hue: float = 0.0,
+    hue_whole: float = 0.0,
 ) -> Path:
     """Train and write OUT/needle_seg.pt; returns its path.
 
@@ -200,9 +201,12 @@ def train(
     (``off``: none, the shipped recipe; ``domain``: blur, noise, gamma, colour, JPEG);
     ``init`` a segmenter checkpoint to start from (:func:`init_weights`); ``hue`` the
     amplitude (turns) of a hue shift per crop, U(-hue, hue), drawn like ``augment`` (0.5 spins
-    the whole colour circle: the tissue's colour is not what tells the needle)."""
+    the whole colour circle: the tissue's colour is not what tells the needle); ``hue_whole``
+    the share of crops whose hue turns by any amount instead (the rest keep their colours)."""
     if not 0.0 <= hue <= 0.5:
         raise ValueError(f"--hue must lie in [0, 0.5] turns, got {hue}")
+    if not 0.0 <= hue_whole <= 1.0:
+        raise ValueError(f"--hue-whole must lie in [0, 1], got {hue_whole}")
     torch.manual_seed(seed)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     ds = open_split(data, split)
@@ -230,8 +234,9 @@ def train(
         x, y = make_batch(items, idx, cfg, gen)
         if augment != "off":  # seeded per (step, sample): no draw from gen, so "off" is unchanged
             x = augment_batch(x, photometric, batch_seeds(seed, step, idx))
-        if hue > 0:  # its own generator, for the same reason
-            x = hsv_jitter(x, torch.Generator().manual_seed(seed * 1_000_003 + step), hue, 0.0, 0.0)
+        if hue > 0 or hue_whole > 0:  # its own generator, for the same reason
+            hue_gen = torch.Generator().manual_seed(seed * 1_000_003 + step)
+            x = hsv_jitter(x, hue_gen, hue, 0.0, 0.0, whole=hue_whole)
         loss = seg_loss(net(x), y)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -251,6 +256,7 @@ def train(
         **({"augment": augment} if augment != "off" else {}),
         **({"init": str(init)} if init is not None else {}),
         **({"hue": hue} if hue > 0 else {}),
+        **({"hue_whole": hue_whole} if hue_whole > 0 else {}),
         "train_seconds": round(seconds, 1),
         "torch": torch.__version__,
     }
@@ -308,6 +314,14 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         help="hue shift amplitude per crop, turns (0.5: any tissue colour; default 0: none)",
     )
+    ap.add_argument(
+        "--hue-whole",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="share of the crops whose hue turns by any amount, the rest keeping --hue's "
+        "(0.5: half see tissue of any colour, half ours; default 0: none)",
+    )
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -320,6 +334,7 @@ def main(argv: list[str] | None = None) -> int:
             args.dataset, args.out, args.steps, args.batch, args.seed, cfg,
             not args.no_progress, split=args.split, augment=args.augment, init=args.init,
             hue=args.hue,
+            hue_whole=args.hue_whole,
         )  # fmt: skip
     except (BopsurgError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)  # noqa: T201 (the CLI's one-line error)

@@ -157,36 +157,42 @@ def test_a_run_of_an_older_bopsurg_resumes(dataset, tmp_path):
     assert main([*args, "--epochs", "1"]) == 0
     settings = json.loads((out / "train_state.json").read_text())
     del settings["model"], settings["recipe"]["augment"], settings["recipe"]["hsv"]
+    del settings["recipe"]["hue_whole"]
     (out / "train_state.json").write_text(json.dumps(settings))
     assert main([*args, "--epochs", "2"]) == 0
     assert load_tensors(out / "detector.pt")  # resumed, not refused
 
 
 def test_the_detector_recipe_sets_its_colour_jitter(dataset, tmp_path, capsys):
-    """``recipe.hsv``: the old fixed jitter by default; a full hue circle trains otherwise."""
-    assert _dump(capsys, "detector", "--preset", "test")["recipe"]["hsv"] == [0.015, 0.7, 0.4]
+    """``recipe.hsv``: the old fixed jitter by default; a full hue circle trains otherwise,
+    for every image or (``hue_whole``) for a share of them."""
+    dumped = _dump(capsys, "detector", "--preset", "test")["recipe"]
+    assert dumped["hsv"] == [0.015, 0.7, 0.4]
+    assert dumped["hue_whole"] == 0.0
     weights = {}
-    for name, hsv in (
-        ("a", "[0.5, 0.7, 0.4]"),
-        ("b", "[0.5, 0.7, 0.4]"),
-        ("old", "[0.015, 0.7, 0.4]"),
+    for name, recipe in (
+        ("a", "hsv: [0.5, 0.7, 0.4]"),
+        ("b", "hsv: [0.5, 0.7, 0.4]"),
+        ("old", "hsv: [0.015, 0.7, 0.4]"),
+        ("share", "hsv: [0.015, 0.7, 0.4], hue_whole: 1.0"),
     ):
-        cfg = _write(
-            tmp_path / f"{name}.yaml", f"preset: test\nrecipe: {{epochs: 1, hsv: {hsv}}}\n"
-        )
+        cfg = _write(tmp_path / f"{name}.yaml", f"preset: test\nrecipe: {{epochs: 1, {recipe}}}\n")
         out = tmp_path / name
         args = ["train", "detector", str(dataset), "--split", "test", "--out", str(out)]
         assert main([*args, "--config", cfg, "--batch-size", "2", "--no-progress"]) == 0
-        assert yaml.safe_load((out / "config.yaml").read_text())["recipe"]["hsv"] == yaml.safe_load(
-            hsv
+        written = yaml.safe_load((out / "config.yaml").read_text())["recipe"]
+        assert {k: written[k] for k in yaml.safe_load(f"{{{recipe}}}")} == yaml.safe_load(
+            f"{{{recipe}}}"
         )
         weights[name] = load_tensors(out / "detector.pt")
     assert all(torch.equal(weights["a"][k], weights["b"][k]) for k in weights["a"])
-    assert any(not torch.equal(weights["a"][k], weights["old"][k]) for k in weights["a"])
+    for other in ("old", "share"):
+        assert any(not torch.equal(weights["a"][k], weights[other][k]) for k in weights["a"])
+    assert any(not torch.equal(weights["old"][k], weights["share"][k]) for k in weights["a"])
 
 
 def test_a_pose_run_from_before_the_mirror_resumes(tmp_path):
-    """train_state.json written before ``recipe.mirror`` and ``recipe.mirror_splits``."""
+    """train_state.json written before ``recipe.mirror``, ``mirror_splits`` and ``hue_whole``."""
     from bopsurg.bop.dataset import BopDataset
     from tests.models.plane_depth import write_plane_depth
 
@@ -198,6 +204,7 @@ def test_a_pose_run_from_before_the_mirror_resumes(tmp_path):
     assert main([*args, "--epochs", "1"]) == 0
     settings = json.loads((out / "train_state.json").read_text())
     del settings["recipe"]["mirror"], settings["recipe"]["mirror_splits"]
+    del settings["recipe"]["hue_whole"]
     (out / "train_state.json").write_text(json.dumps(settings))
     assert main([*args, "--epochs", "2"]) == 0
     assert json.loads((out / "train_state.json").read_text())["recipe"]["mirror"] == 0.0

@@ -63,6 +63,14 @@ def test_hue_shifts_are_seeded_recorded_and_checked(dataset, tmp_path, capsys):
     assert "--hue" in one_line_error(capsys)
 
 
+def test_a_share_of_whole_circle_hues_is_seeded_recorded_and_checked(dataset, tmp_path, capsys):
+    info, plain_info = _seeded_pair_and_plain(dataset, tmp_path, "--hue-whole", "0.5")
+    assert info["meta"]["hue_whole"] == 0.5
+    assert "hue_whole" not in plain_info["meta"]
+    assert _train(dataset, tmp_path / "bad", "--hue-whole", "1.5") == 2
+    assert "--hue-whole" in one_line_error(capsys)
+
+
 def test_a_missing_split_is_one_line(dataset, tmp_path, capsys):
     assert _train(dataset, tmp_path / "x", "--split", "train,nope") == 2
     err = one_line_error(capsys)
