@@ -55,20 +55,17 @@ def test_seeded_two_splits_and_augmentation_recorded(dataset, tmp_path):
     assert "split" not in plain_info["meta"]
 
 
-def test_hue_shifts_are_seeded_recorded_and_checked(dataset, tmp_path, capsys):
-    info, plain_info = _seeded_pair_and_plain(dataset, tmp_path, "--hue", "0.5")
-    assert info["meta"]["hue"] == 0.5
-    assert "hue" not in plain_info["meta"]
-    assert _train(dataset, tmp_path / "bad", "--hue", "0.7") == 2
-    assert "--hue" in one_line_error(capsys)
-
-
-def test_a_share_of_whole_circle_hues_is_seeded_recorded_and_checked(dataset, tmp_path, capsys):
-    info, plain_info = _seeded_pair_and_plain(dataset, tmp_path, "--hue-whole", "0.5")
-    assert info["meta"]["hue_whole"] == 0.5
-    assert "hue_whole" not in plain_info["meta"]
-    assert _train(dataset, tmp_path / "bad", "--hue-whole", "1.5") == 2
-    assert "--hue-whole" in one_line_error(capsys)
+@pytest.mark.parametrize(
+    ("flag", "key", "bad"),
+    [("--hue", "hue", "0.7"), ("--hue-whole", "hue_whole", "1.5")],
+    ids=["amplitude", "whole-circle share"],
+)
+def test_hue_shifts_are_seeded_recorded_and_checked(dataset, tmp_path, capsys, flag, key, bad):
+    info, plain_info = _seeded_pair_and_plain(dataset, tmp_path, flag, "0.5")
+    assert info["meta"][key] == 0.5
+    assert key not in plain_info["meta"]
+    assert _train(dataset, tmp_path / "bad", flag, bad) == 2
+    assert flag in one_line_error(capsys)
 
 
 def test_a_missing_split_is_one_line(dataset, tmp_path, capsys):
