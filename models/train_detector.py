@@ -60,6 +60,10 @@ class DetectorRecipe:
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
 
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.hue_whole <= 1.0:
+            raise ValueError(f"hue_whole is a share of the images, in [0, 1], got {self.hue_whole}")
+
     def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
         return training.Schedule(

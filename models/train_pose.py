@@ -82,6 +82,12 @@ class PoseRecipe:
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
 
+    def __post_init__(self) -> None:
+        for name in ("mirror", "hue_whole"):
+            share = getattr(self, name)
+            if not 0.0 <= share <= 1.0:
+                raise ValueError(f"{name} is a share of the samples, in [0, 1], got {share}")
+
     def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
         return training.Schedule(

@@ -109,6 +109,8 @@ def test_the_file_sets_fields_and_flags_override_it(tmp_path, capsys):
         ("loader: {cache_mb: 1.5}\n", "loader.cache_mb: expected an integer"),
         ("loader: {cache_items: many}\n", "loader.cache_items must be null or an integer"),
         ("loader: {cache_items: -2}\n", "loader.cache_items must be >= 0"),
+        ("recipe: {hue_whole: 1.5}\n", "recipe: hue_whole is a share of the samples, in [0, 1]"),
+        ("recipe: {mirror: -0.1}\n", "recipe: mirror is a share of the samples, in [0, 1]"),
     ],
 )
 def test_bad_files_are_one_line_errors_naming_file_and_key(tmp_path, capsys, text, needle):
@@ -169,6 +171,9 @@ def test_the_detector_recipe_sets_its_colour_jitter(dataset, tmp_path, capsys):
     dumped = _dump(capsys, "detector", "--preset", "test")["recipe"]
     assert dumped["hsv"] == [0.015, 0.7, 0.4]
     assert dumped["hue_whole"] == 0.0
+    bad = _write(tmp_path / "bad.yaml", "recipe: {hue_whole: 2}\n")
+    err = _error(capsys, ["detector", "--config", bad, "--dump-config"])
+    assert "recipe: hue_whole is a share of the images, in [0, 1], got 2" in err
     weights = {}
     for name, recipe in (
         ("a", "hsv: [0.5, 0.7, 0.4]"),
