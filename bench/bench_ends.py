@@ -88,13 +88,8 @@ def main() -> None:
         ev, errs, t = predict_eval(args.data, args.split, out, str(i), args.device, [*extra, *opts])
         flip = table_needles(ev, errs).set_index([*KEYS, "gt_id"]).re > FLIP_DEG
         if base is None:  # the run without the check: what the others are compared with
-            base, base_flip, n_turned, mended, broke = (
-                load_results(out / "results_0.csv"),
-                flip,
-                0,
-                0,
-                0,
-            )
+            base, base_flip = load_results(out / "results_0.csv"), flip
+            n_turned = mended = broke = 0
         else:
             n_turned = int(turned(base, out / f"results_{i}.csv").sum())
             before = base_flip.reindex(flip.index, fill_value=False)

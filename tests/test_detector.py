@@ -371,8 +371,14 @@ def test_hsv_jitter_spins_the_whole_hue_circle_for_its_share_only():
     0 draws nothing more, so older recipes see the same colours."""
     red = torch.zeros(2000, 3, 2, 2)
     red[:, 0] = 1.0
-    same = hsv_jitter(red, torch.Generator().manual_seed(1), 0.015, 0.7, 0.4)
-    assert torch.equal(same, hsv_jitter(red, torch.Generator().manual_seed(1), whole=0.0))
+    # whole = 0 takes the three draws of the old jitter (hue, saturation, value) and no more;
+    # any share takes more, so the runs after it see other numbers
+    for whole, more in ((0.0, False), (0.3, True)):
+        used, old = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+        hsv_jitter(red, used, whole=whole)
+        for _ in range(3):
+            torch.rand(len(red), generator=old)
+        assert torch.equal(torch.rand(8, generator=used), torch.rand(8, generator=old)) != more
     hue = rgb_to_hsv(hsv_jitter(red, torch.Generator().manual_seed(1), 0.0, 0, 0, 0.3))
     turn = torch.minimum(hue[:, 0, 0, 0], 1 - hue[:, 0, 0, 0])  # distance from red, turns
     spun = turn > 1e-4

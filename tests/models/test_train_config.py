@@ -186,9 +186,8 @@ def test_the_detector_recipe_sets_its_colour_jitter(dataset, tmp_path, capsys):
         args = ["train", "detector", str(dataset), "--split", "test", "--out", str(out)]
         assert main([*args, "--config", cfg, "--batch-size", "2", "--no-progress"]) == 0
         written = yaml.safe_load((out / "config.yaml").read_text())["recipe"]
-        assert {k: written[k] for k in yaml.safe_load(f"{{{recipe}}}")} == yaml.safe_load(
-            f"{{{recipe}}}"
-        )
+        asked = yaml.safe_load(f"{{{recipe}}}")
+        assert {k: written[k] for k in asked} == asked
         weights[name] = load_tensors(out / "detector.pt")
     assert all(torch.equal(weights["a"][k], weights["b"][k]) for k in weights["a"])
     for other in ("old", "share"):
