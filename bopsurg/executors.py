@@ -133,22 +133,23 @@ class RayExecutor:
             if started_here:
                 stack.callback(_refresh_auth_config)  # last: Ray sees the restored variables
                 stack.enter_context(_environ(_auth_env(self.address, os.environ)))
-                _connect(ray, self.address)
-                stack.callback(ray.shutdown)
-            return self._run(ray, fn, units, report)
+                stack.callback(ray.shutdown)  # idempotent; also after a failed connect
+            # Ray's C++ core logs the failures below on fd 2 from its own threads; the user
+            # gets our one-line error instead, and the core's lines go to the debug log.
+            with _stderr_to_log("ray.init and the first actor"):
+                if started_here:
+                    _connect(ray, self.address)
+                try:
+                    counter = _first_actor(ray, self.address)
+                except BopsurgError:
+                    if started_here:
+                        ray.shutdown()  # still captured: the core logs as it stops
+                    raise
+            return self._run(ray, counter, fn, units, report)
 
-    def _run(self, ray: Any, fn: UnitFn, units: Sequence[Any], report: Report) -> list[Any]:
-        counter = ray.remote(num_cpus=0)(_ProgressCounter).remote()
-        try:  # the first round trip to an actor: a driver the cluster cannot serve fails here
-            ray.get(counter.take.remote())
-        except ray.exceptions.RayError as err:
-            mode = os.environ.get("RAY_AUTH_MODE", "unset")
-            raise BopsurgError(
-                f"the Ray cluster at {self.address or 'this machine'} cannot run this driver's "
-                f"work ({type(err).__name__}); with RAY_AUTH_MODE={mode} here, check that the "
-                "cluster uses the same authentication (RAY_AUTH_MODE=token on every node, or "
-                "none anywhere)"
-            ) from None
+    def _run(
+        self, ray: Any, counter: Any, fn: UnitFn, units: Sequence[Any], report: Report
+    ) -> list[Any]:
         task = ray.remote(max_retries=self.max_retries, num_cpus=self.num_cpus)(_ray_call)
         refs = [task.remote(fn, unit, counter) for unit in units]
         remaining = list(refs)
@@ -209,15 +210,41 @@ def _connect(ray: Any, address: str | None) -> None:
     if address is not None:
         _check_reachable(address)
     _refresh_auth_config()
+    try:
+        ray.init(address=address, log_to_driver=False, configure_logging=False)
+    except Exception as err:
+        raise BopsurgError(_connect_error(err, address)) from None
+
+
+def _first_actor(ray: Any, address: str | None) -> Any:
+    """The progress counter actor, after one round trip to it: a driver that the cluster
+    cannot serve (e.g. it authenticates and the cluster does not) fails here, in one line."""
+    counter = ray.remote(num_cpus=0)(_ProgressCounter).remote()
+    try:
+        ray.get(counter.take.remote())
+    except ray.exceptions.RayError as err:
+        mode = os.environ.get("RAY_AUTH_MODE", "unset")
+        raise BopsurgError(
+            f"the Ray cluster at {address or 'this machine'} cannot run this driver's "
+            f"work ({type(err).__name__}); with RAY_AUTH_MODE={mode} here, check that the "
+            "cluster uses the same authentication (RAY_AUTH_MODE=token on every node, or "
+            "none anywhere)"
+        ) from None
+    return counter
+
+
+@contextlib.contextmanager
+def _stderr_to_log(what: str) -> Iterator[None]:
+    """File descriptor 2 captured inside the block and written to the debug log after it."""
     with tempfile.TemporaryFile() as captured:
         try:
-            with _stderr_to(captured):  # Ray's C++ core logs its retries there
-                ray.init(address=address, log_to_driver=False, configure_logging=False)
-        except Exception as err:
-            raise BopsurgError(_connect_error(err, address)) from None
+            with _stderr_to(captured):
+                yield
         finally:
             captured.seek(0)
-            log.debug("ray.init: %s", captured.read().decode(errors="replace").strip())
+            text = captured.read().decode(errors="replace").strip()
+            if text:
+                log.debug("%s: %s", what, text)
 
 
 def _refresh_auth_config() -> None:

@@ -3,8 +3,11 @@ tests in tests/test_ray_cluster.py need root; these run everywhere)."""
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
+import sys
+import types
 
 import pytest
 
@@ -12,6 +15,7 @@ from bopsurg.errors import BopsurgError
 from bopsurg.executors import (
     AUTH_VARS,
     LocalExecutor,
+    RayExecutor,
     _auth_env,
     _check_reachable,
     _connect_error,
@@ -99,3 +103,66 @@ def test_make_executor():
     assert isinstance(make_executor("local", workers=2), LocalExecutor)
     with pytest.raises(BopsurgError, match="unknown executor 'dask'"):
         make_executor("dask")
+
+
+class _FakeRayError(Exception):
+    pass
+
+
+def _fake_ray(calls: list[str]) -> types.ModuleType:
+    """Just enough of ``ray`` for a driver whose first actor the cluster cannot serve; its
+    'C++ core' writes to file descriptor 2, as Ray's does from its own threads."""
+    ray = types.ModuleType("ray")
+
+    def core_log(line: str) -> None:
+        os.write(2, f"core_worker.cc:2488: {line}\n".encode())
+
+    class Actor:
+        class take:  # mirrors ray's actor.method.remote()
+            @staticmethod
+            def remote() -> str:
+                return "ref"
+
+    def remote(**_options):
+        return lambda cls: types.SimpleNamespace(remote=lambda: Actor())
+
+    def get(_ref):
+        core_log("Failed to register actor")
+        raise _FakeRayError("actor died")
+
+    def init(**_kwargs):
+        calls.append("init")
+        core_log("connecting")
+
+    def is_initialized() -> bool:
+        return "init" in calls and "shutdown" not in calls
+
+    def shutdown():  # a no-op when not connected, as Ray's
+        if is_initialized():
+            calls.append("shutdown")
+            core_log("stopping")
+
+    ray.is_initialized = is_initialized
+    ray.init, ray.shutdown, ray.remote, ray.get = init, shutdown, remote, get
+    ray.exceptions = types.SimpleNamespace(RayError=_FakeRayError)
+    return ray
+
+
+def test_a_driver_the_cluster_cannot_serve_gets_one_line_and_nothing_else(
+    monkeypatch, capfd, caplog
+):
+    calls: list[str] = []
+    monkeypatch.setitem(sys.modules, "ray", _fake_ray(calls))
+    monkeypatch.setitem(sys.modules, "ray._raylet", types.ModuleType("ray._raylet"))
+    for var in AUTH_VARS:
+        monkeypatch.delenv(var, raising=False)
+    with (
+        caplog.at_level(logging.DEBUG, logger="bopsurg.executors"),
+        pytest.raises(BopsurgError, match="cannot run this driver's work") as err,
+    ):
+        RayExecutor(None).map(lambda unit, report: unit, [1])
+    assert "\n" not in str(err.value)
+    assert capfd.readouterr().err == ""  # the core's lines went to the debug log instead
+    assert "Failed to register actor" in caplog.text
+    assert "stopping" in caplog.text  # shut down while still captured
+    assert calls == ["init", "shutdown"]
