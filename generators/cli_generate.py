@@ -123,8 +123,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "light only, as the paper's replays; 'wide' also draws a camera-to-needle distance of "
         "20-120 mm, a light set-up, phantom surface and colour, background, a specular "
         "needle, grey/black materials on Large-Needle-Driver-like instruments and a simulated "
-        "suture thread from the needle's tail (an occluder in the needle's masks); every "
-        "draw is recorded in bopsurg_scene.json",
+        "suture thread from the needle's tail (an occluder in the needle's masks), and on "
+        "half the replays suture targets painted beside the incisions; every draw is "
+        "recorded in bopsurg_scene.json",
     )
     _add_backend_args(p, d)
     add_executor_args(p, unit="replay")

@@ -12,6 +12,8 @@ draw of :func:`~bopsurg.generators.viewpoints.draw_replay` alone, byte for byte 
   usual light draw uses;
 - the look (:class:`Appearance`): phantom surface (procedural tissue of one of several seeds,
   or flat plastic) and colour, background, a specular steel needle, grey/black instruments;
+  on half the replays suture targets painted beside the incisions (:class:`MarksDraw`:
+  squares, diamonds or dots of one colour, as training pads and the AMBF phantom have);
 - instruments shaped closer to the Large Needle Driver (:func:`profile_scene`; per dataset,
   not drawn, since with ``--annotate-instruments`` they are BOP objects);
 - a suture thread (:class:`ThreadDraw`) hanging from the needle's tail: a thin dark tube,
@@ -41,7 +43,7 @@ from numpy.typing import NDArray
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.errors import InputError
 from bopsurg.generators.backend import NEEDLE, RenderBackend, SceneSpec
-from bopsurg.generators.pybullet_scene import PAD_SIZE, PAD_THICKNESS, pad_height
+from bopsurg.generators.pybullet_scene import MARK_SHAPES, PAD_SIZE, PAD_THICKNESS, pad_height
 from bopsurg.generators.viewpoints import ReplayDraw, ViewpointRanges, draw_replay
 from bopsurg.needle import fit_needle
 
@@ -52,6 +54,10 @@ F64 = NDArray[np.float64]
 #: Profile names (``bopsurg generate --domain``); the first is the default.
 DOMAINS = ("paper", "wide")
 DEFAULT_DOMAIN = "paper"
+#: Revision of each non-default profile's draw, recorded with the settings
+#: (``settings.domain_revision``): a split drawn by an older revision is not resumed by a
+#: newer one (its finished replays would look different from the rest). 2: suture targets.
+DOMAIN_REVISIONS = {"wide": 2}
 
 #: Camera-to-needle distance range of ``wide``, mm (the needle's median depth per replay).
 WIDE_DISTANCE_MM = (20.0, 120.0)
@@ -108,6 +114,36 @@ THREAD_COLOURS: dict[str, tuple[float, float, float]] = {
     "blue": (0.06, 0.09, 0.3),
     "green": (0.05, 0.16, 0.08),
 }
+#: Suture target colours (RGB): red (the AMBF phantom's), dark red, black, blue, green.
+MARK_COLOURS: dict[str, tuple[float, float, float]] = {
+    "red": (0.85, 0.07, 0.08),
+    "dark_red": (0.5, 0.04, 0.06),
+    "black": (0.05, 0.05, 0.06),
+    "blue": (0.08, 0.15, 0.6),
+    "green": (0.1, 0.45, 0.15),
+}
+#: Share of ``wide`` replays whose phantom carries suture targets.
+MARKS_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class MarksDraw:
+    """Suture targets painted on the phantom (see
+    :func:`~bopsurg.generators.pybullet_scene.paint_marks`); sizes in mm.
+
+    Attributes:
+        shape: One of :data:`~bopsurg.generators.pybullet_scene.MARK_SHAPES`.
+        colour: Key of :data:`MARK_COLOURS`.
+        size_mm: Side or diameter, mm.
+        spacing_mm: Distance between neighbouring targets along an incision, mm.
+        offset_mm: Distance of a target from the incision's centre line, mm.
+    """
+
+    shape: str
+    colour: str
+    size_mm: float
+    spacing_mm: float
+    offset_mm: float
 
 
 @dataclass(frozen=True)
@@ -122,6 +158,7 @@ class Appearance:
         background_rgba: Multiplier of the drape's texture.
         needle_rgba, needle_specular: The needle's colour and specular colour.
         shaft_rgba, metal_rgba, jaw_rgba: Instrument shaft, wrist/hub and jaw colours.
+        phantom_marks: Suture targets painted on the phantom, or None.
     """
 
     phantom_surface: str = "tissue"
@@ -133,6 +170,7 @@ class Appearance:
     shaft_rgba: tuple[float, float, float, float] = (0.09, 0.09, 0.10, 1.0)
     metal_rgba: tuple[float, float, float, float] = (0.64, 0.65, 0.67, 1.0)
     jaw_rgba: tuple[float, float, float, float] = (0.55, 0.56, 0.58, 1.0)
+    phantom_marks: MarksDraw | None = None
 
 
 @dataclass(frozen=True)
@@ -275,6 +313,17 @@ def draw_domain(
         lay_seed=int(rng.integers(0, 2**31)),
         fall_m_s2=_u(rng, 0.05, 0.6),
     )
+    # Drawn last (revision 2), so every draw above is what revision 1 drew; all six numbers
+    # are drawn whether or not targets are shown, so the stream's length is fixed.
+    marked = _u(rng, 0.0, 1.0) < MARKS_SHARE
+    marks = MarksDraw(
+        shape=_pick(rng, MARK_SHAPES),
+        colour=_pick(rng, list(MARK_COLOURS)),
+        size_mm=_u(rng, 2.0, 5.0),
+        spacing_mm=_u(rng, 6.0, 12.0),
+        offset_mm=_u(rng, 2.5, 6.0),
+    )
+    appearance = replace(appearance, phantom_marks=marks if marked else None)
     return draw, DomainDraw(
         profile=profile,
         light_setup=setup,

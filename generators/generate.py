@@ -204,6 +204,20 @@ def _check_same_object_model(old: dict[str, Any], new: dict[str, Any], info_path
     )
 
 
+def _check_same_domain_revision(old: dict[str, Any], new: dict[str, Any], info_path: Path) -> None:
+    """Refuse to resume a split whose ``--domain`` profile drew an older revision."""
+    before = old.get("settings") or {}
+    if before.get("domain") != new.get("domain") or "domain" not in new:
+        return  # another profile altogether: the settings comparison says so
+    was, now = before.get("domain_revision", 1), new.get("domain_revision", 1)
+    if was != now:
+        raise InputError(
+            f"this split was drawn by revision {was} of --domain {new['domain']}, this bopsurg "
+            f"draws revision {now}; choose a new --out or --split (nothing was changed)",
+            path=info_path,
+        )
+
+
 def _without_model_path(settings: Any) -> Any:
     """Recorded settings without the object model's path (compared by checksum instead)."""
     config = settings.get("backend_config") if isinstance(settings, dict) else None
@@ -231,6 +245,7 @@ def _write_dataset_files(
     if info_path.exists():
         old = load_json(info_path)
         _check_same_object_model(old, settings.backend_config, info_path)
+        _check_same_domain_revision(old, info["settings"], info_path)
         # The mesh is the same by checksum; it may have moved (like the bags).
         same = _without_model_path(old.get("settings")) == _without_model_path(
             json.loads(json.dumps(info["settings"]))

@@ -28,11 +28,12 @@ from numpy.typing import NDArray
 
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import ARMS
-from bopsurg.generators.domain import Appearance
+from bopsurg.generators.domain import MARK_COLOURS, Appearance
 from bopsurg.generators.pybullet_backend import write_obj
 from bopsurg.generators.pybullet_scene import (
     PAD_THICKNESS,
     cylinder_mesh,
+    paint_marks,
     skin_texture,
 )
 
@@ -100,6 +101,16 @@ def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appeara
             image = flat_texture()
         else:
             image = skin_texture(a.phantom_texture_seed)
+        if a.phantom_marks is not None:
+            m = a.phantom_marks
+            image = paint_marks(
+                image,
+                shape=m.shape,
+                size_mm=m.size_mm,
+                spacing_mm=m.spacing_mm,
+                offset_mm=m.offset_mm,
+                rgb=MARK_COLOURS[m.colour],
+            )
         tex = _texture(client, image, Path(tmp), "phantom")
     p.changeVisualShape(
         bodies["phantom"],

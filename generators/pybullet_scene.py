@@ -569,6 +569,77 @@ def skin_texture(seed: int = 0, size: tuple[int, int] = (1024, 768)) -> NDArray[
     return _frozen((np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
 
 
+#: Shapes of the suture targets that :func:`paint_marks` paints.
+MARK_SHAPES = ("square", "diamond", "dot")
+
+
+def paint_marks(
+    image: NDArray[np.uint8],
+    *,
+    shape: str,
+    size_mm: float,
+    spacing_mm: float,
+    offset_mm: float,
+    rgb: tuple[float, float, float],
+) -> NDArray[np.uint8]:
+    """The pad texture ``image`` with suture targets painted on either side of each incision.
+
+    Training pads (and the AMBF simulator's phantom) mark where a stitch enters and leaves:
+    pairs of coloured squares or dots ``offset_mm`` either side of the cut, every
+    ``spacing_mm`` along it, over the incision's length and one spacing beyond. They are
+    strong, needle-sized distractors for a detector that never saw them.
+
+    Args:
+        image: (H, W, 3) uint8 RGB pad texture, mapped onto the whole 80 × 60 mm top as
+            :func:`skin_texture` describes (any size: texels need not be square).
+        shape: One of :data:`MARK_SHAPES`.
+        size_mm: Side (square, diamond) or diameter (dot), mm.
+        spacing_mm: Distance between neighbouring targets along the incision, mm.
+        offset_mm: Distance of a target's centre from the incision's centre line, mm.
+        rgb: Colour in [0, 1]; the texture's shading shows through a little.
+
+    Raises:
+        ValueError: An unknown shape or a size, spacing or offset that is not positive.
+    """
+    if shape not in MARK_SHAPES:
+        raise ValueError(f"unknown mark shape {shape!r}; expected one of {MARK_SHAPES}")
+    if not min(size_mm, spacing_mm, offset_mm) > 0:
+        raise ValueError("mark size, spacing and offset must be positive (mm)")
+    h, w = image.shape[:2]
+    sx, sy = w / PAD_SIZE[0], h / PAD_SIZE[1]  # texels per mm
+    n = int((INCISION_HALF_LENGTH + spacing_mm) // spacing_mm)
+    ys = spacing_mm * np.arange(-n, n + 1)
+    centres = np.array(
+        [(xc + side * offset_mm, y) for xc in INCISIONS_X for side in (-1, 1) for y in ys]
+    )
+    # Unit outline of one target (mm, about its centre), then every target at once.
+    r = 0.5 * size_mm
+    if shape == "dot":
+        a = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)
+        outline = r * np.stack([np.cos(a), np.sin(a)], axis=1)
+    elif shape == "square":
+        outline = r * np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    else:
+        outline = r * np.sqrt(2.0) * np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+    pts = centres[:, None, :] + outline[None]  # (targets, corners, 2) mm
+    # Coverage by 4 x 4 supersampling: cv2's antialiased fill paints about half a texel too
+    # much. On the fine grid, texel c spans [c, c + 1) and cv2 puts a pixel's centre at c.
+    k = 4
+    cols = (pts[..., 0] + 0.5 * PAD_SIZE[0]) * (k * sx) - 0.5
+    rows = (0.5 * PAD_SIZE[1] - pts[..., 1]) * (k * sy) - 0.5  # row 0 is the +y edge
+    shift = 4  # cv2's fixed-point fraction bits
+    poly = np.round(np.stack([cols, rows], axis=-1) * (1 << shift)).astype(np.int32)
+    fine = np.zeros((k * h, k * w), np.uint8)
+    cv2.fillPoly(fine, list(poly), 255, cv2.LINE_8, shift)
+    cover = cv2.resize(fine, (w, h), interpolation=cv2.INTER_AREA)
+    alpha = cover[..., None].astype(np.float64) / 255.0
+    base = image.astype(np.float64) / 255.0
+    shade = base.mean(axis=2, keepdims=True) / max(float(base.mean()), 1e-6)
+    mark = np.asarray(rgb, np.float64) * (0.85 + 0.15 * shade)
+    out = base * (1.0 - alpha) + alpha * mark
+    return (np.clip(out, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
 @functools.lru_cache(maxsize=4)
 def drape_texture(seed: int = 0, size: int = 1024) -> NDArray[np.uint8]:
     """Blue-green surgical drape texture, (size, size, 3) uint8 RGB (weave and folds)."""

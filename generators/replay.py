@@ -56,7 +56,7 @@ from bopsurg.generators.backend import (
     RenderBackend,
     RenderedFrame,
 )
-from bopsurg.generators.domain import DEFAULT_DOMAIN, DomainReplay, draw_domain
+from bopsurg.generators.domain import DEFAULT_DOMAIN, DOMAIN_REVISIONS, DomainReplay, draw_domain
 from bopsurg.generators.kinematics import ecm_camera_pose
 from bopsurg.generators.recording import Recording
 from bopsurg.generators.viewpoints import ReplayDraw, light_in_world
@@ -118,10 +118,14 @@ class GenerateSettings:
     domain: str = DEFAULT_DOMAIN
 
     def to_json(self) -> dict:
-        """JSON-ready form (``domain`` only when not the default, as before it existed)."""
+        """JSON-ready form: ``domain`` only when not the default (as before it existed), then
+        with the profile's ``domain_revision`` (see
+        :data:`~bopsurg.generators.domain.DOMAIN_REVISIONS`), so resuming compares it too."""
         out = asdict(self)
         if self.domain == DEFAULT_DOMAIN:
             del out["domain"]
+        elif self.domain in DOMAIN_REVISIONS:
+            out["domain_revision"] = DOMAIN_REVISIONS[self.domain]
         return out
 
 

@@ -1,5 +1,6 @@
 """`generate --domain`: the paper profile is the old draw, the wide one reaches 20-120 mm,
-is recorded and deterministic, and its suture thread occludes the needle in its masks."""
+is recorded and deterministic, paints suture targets on half its phantoms, and its suture
+thread occludes the needle in its masks."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import hashlib
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -14,6 +16,8 @@ from bopsurg.errors import InputError
 from bopsurg.generators import generate as gen
 from bopsurg.generators.backend import DEFAULT_NEEDLE_POSE, CameraSpec, LightSpec, SceneSpec
 from bopsurg.generators.domain import (
+    MARK_COLOURS,
+    MARKS_SHARE,
     WIDE_DISTANCE_MM,
     SutureThread,
     dolly_offset,
@@ -22,6 +26,13 @@ from bopsurg.generators.domain import (
     needle_tail,
 )
 from bopsurg.generators.kinematics import ecm_camera_pose, look_rotation, pose
+from bopsurg.generators.pybullet_scene import (
+    INCISION_HALF_LENGTH,
+    INCISIONS_X,
+    MARK_SHAPES,
+    PAD_SIZE,
+    paint_marks,
+)
 from bopsurg.generators.replay import GenerateSettings
 from bopsurg.generators.viewpoints import draw_replay
 from bopsurg.needle import needle_mesh
@@ -38,6 +49,79 @@ def test_paper_profile_is_the_draw_of_before():
     assert GenerateSettings(domain="wide").to_json()["domain"] == "wide"
     with pytest.raises(ValueError, match="unknown domain"):
         draw_domain(np.random.default_rng(0), 0, "nope")
+
+
+def test_wide_revision_2_keeps_every_draw_of_revision_1_and_adds_targets():
+    """Revision 1's draws are recorded here (seed 4, replay 0), so the targets drawn last
+    change nothing drawn before them."""
+    _, domain = draw_domain(np.random.default_rng(4), 0, "wide")
+    assert domain is not None
+    assert domain.distance_mm == pytest.approx(67.71535238392063, abs=1e-12)
+    assert domain.thread is not None
+    assert domain.thread.lay_seed == 1070443482
+    assert (domain.light_setup, domain.phantom_tint) == ("bright", "yellow")
+    assert GenerateSettings(domain="wide").to_json()["domain_revision"] == 2
+    marks = []
+    for seed in range(400):
+        _, d = draw_domain(np.random.default_rng(seed), seed % 20, "wide")
+        assert d is not None
+        marks.append(d.appearance.phantom_marks)
+    shown = [m for m in marks if m is not None]
+    assert abs(len(shown) / len(marks) - MARKS_SHARE) < 0.08
+    assert {m.shape for m in shown} == set(MARK_SHAPES)
+    assert {m.colour for m in shown} == set(MARK_COLOURS)
+    assert all(2.0 <= m.size_mm <= 5.0 and 2.5 <= m.offset_mm <= 6.0 for m in shown)
+
+
+def _texel(image: np.ndarray, x_mm: float, y_mm: float) -> np.ndarray:
+    h, w = image.shape[:2]
+    col = int((x_mm / PAD_SIZE[0] + 0.5) * w)
+    row = int((0.5 - y_mm / PAD_SIZE[1]) * h)
+    return image[row, col].astype(int)
+
+
+@pytest.mark.parametrize("shape", MARK_SHAPES)
+def test_targets_are_painted_in_pairs_beside_every_incision(shape):
+    grey = np.full((600, 800, 3), 200, np.uint8)  # 10 texels per mm
+    out = paint_marks(grey, shape=shape, size_mm=3.0, spacing_mm=8.0, offset_mm=4.0, rgb=(1, 0, 0))
+    assert grey[0, 0, 0] == 200  # the input is left as it was
+    red = (out[..., 0] > 200) & (out[..., 1] < 60)
+    n_along = 2 * int((INCISION_HALF_LENGTH + 8.0) // 8.0) + 1  # -16, -8, 0, 8, 16 mm
+    n, _ = cv2.connectedComponents(red.astype(np.uint8))
+    assert n - 1 == len(INCISIONS_X) * 2 * n_along
+    for xc in INCISIONS_X:
+        for side in (-4.0, 4.0):
+            assert _texel(out, xc + side, 8.0).tolist() == [255, 0, 0]  # a target's centre
+        assert _texel(out, xc, 8.0).tolist() == [200, 200, 200]  # the cut itself: bare
+        assert _texel(out, xc + 4.0, 4.0).tolist() == [200, 200, 200]  # between two targets
+    # a 3 mm target covers its area (dots: the disc's), to a texel's antialiasing
+    area = {"square": 9.0, "diamond": 9.0, "dot": np.pi * 2.25}[shape]
+    painted = (200.0 - out[..., 1]).sum() / 200.0 / 100.0  # coverage summed, mm^2
+    assert painted / (n - 1) == pytest.approx(area, rel=0.03)
+
+
+def test_bad_targets_are_refused():
+    grey = np.full((60, 80, 3), 200, np.uint8)
+    with pytest.raises(ValueError, match="unknown mark shape 'star'"):
+        paint_marks(grey, shape="star", size_mm=3, spacing_mm=8, offset_mm=4, rgb=(1, 0, 0))
+    with pytest.raises(ValueError, match="must be positive"):
+        paint_marks(grey, shape="dot", size_mm=3, spacing_mm=0, offset_mm=4, rgb=(1, 0, 0))
+
+
+def test_a_split_of_an_older_wide_revision_is_not_resumed(fake_bag, tmp_path):
+    settings = GenerateSettings(replays=1, seed=3, min_visib=0.0, domain="wide")
+    old = {**settings.to_json()}
+    del old["domain_revision"]  # what revision 1 wrote
+    info = tmp_path / "ds/test/bopsurg_generate.json"
+    info.parent.mkdir(parents=True)
+    info.write_text(json.dumps({"split": "test", "settings": old, "bags": []}))
+    before = info.read_bytes()
+    with pytest.raises(
+        InputError, match="drawn by revision 1 of --domain wide, this bopsurg draws revision 2"
+    ):
+        gen._write_dataset_files(tmp_path / "ds", "test", [str(fake_bag)], settings)
+    assert info.read_bytes() == before
+    assert sorted(p.name for p in (tmp_path / "ds").rglob("*")) == ["bopsurg_generate.json", "test"]
 
 
 def test_wide_distance_is_reached_at_the_needle():
