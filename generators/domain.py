@@ -7,7 +7,11 @@ draw of :func:`~bopsurg.generators.viewpoints.draw_replay` alone, byte for byte 
 
 - a camera-to-needle distance, 20–120 mm: the endoscope keeps its drawn orientation and is
   moved (:func:`dolly_offset`) so that the needle's median position over the replay sits at
-  that depth on the same pixel;
+  that depth on the same pixel; or, on half the replays, the endoscope is placed around the
+  needle instead (:class:`OrbitDraw`, :func:`orbit_offset`): any direction 10–70° above the
+  tissue, any roll about its axis, the needle a little off the image centre, at the drawn
+  depth. The ECM's 20 base poses see the upright needle of the episodes nearly edge-on and
+  from one side; the orbit shows its faces, tilted either way, at every image orientation;
 - a light set-up (:data:`LIGHT_SETUPS`: headlight, oblique, bright, dim), i.e. the ranges the
   usual light draw uses;
 - the look (:class:`Appearance`): phantom surface (procedural tissue of one of several seeds,
@@ -39,10 +43,12 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.errors import InputError
 from bopsurg.generators.backend import NEEDLE, RenderBackend, SceneSpec
+from bopsurg.generators.kinematics import look_rotation, pose, rot_z
 from bopsurg.generators.pybullet_scene import MARK_SHAPES, PAD_SIZE, PAD_THICKNESS, pad_height
 from bopsurg.generators.viewpoints import ReplayDraw, ViewpointRanges, draw_replay
 from bopsurg.needle import fit_needle
@@ -56,8 +62,8 @@ DOMAINS = ("paper", "wide")
 DEFAULT_DOMAIN = "paper"
 #: Revision of each non-default profile's draw, recorded with the settings
 #: (``settings.domain_revision``): a split drawn by an older revision is not resumed by a
-#: newer one (its finished replays would look different from the rest). 2: suture targets.
-DOMAIN_REVISIONS = {"wide": 2}
+#: newer one (its finished replays would look different from the rest).
+DOMAIN_REVISIONS = {"wide": 3}  # 2: suture targets; 3: the orbiting endoscope
 
 #: Camera-to-needle distance range of ``wide``, mm (the needle's median depth per replay).
 WIDE_DISTANCE_MM = (20.0, 120.0)
@@ -124,6 +130,12 @@ MARK_COLOURS: dict[str, tuple[float, float, float]] = {
 }
 #: Share of ``wide`` replays whose phantom carries suture targets.
 MARKS_SHARE = 0.5
+#: Share of ``wide`` replays whose endoscope orbits the needle (:class:`OrbitDraw`).
+ORBIT_SHARE = 0.5
+#: Elevation of an orbiting endoscope above the tissue plane, seen from the needle, degrees.
+ORBIT_ELEVATION_DEG = (10.0, 70.0)
+#: Largest angle of the needle from the optical axis, across and down the image, degrees.
+ORBIT_OFF_AXIS_DEG = 15.0
 
 
 @dataclass(frozen=True)
@@ -144,6 +156,27 @@ class MarksDraw:
     size_mm: float
     spacing_mm: float
     offset_mm: float
+
+
+@dataclass(frozen=True)
+class OrbitDraw:
+    """An endoscope placed around the needle instead of at its ECM pose (see
+    :func:`orbit_offset`); angles in degrees.
+
+    Attributes:
+        elevation_deg: Angle above the tissue plane (world XY) of the line from the needle's
+            median position to the camera.
+        azimuth_deg: That line's direction about world +Z (0: world +X).
+        roll_deg: The image's rotation about the optical axis (0: world +Z is image up).
+        off_x_deg, off_y_deg: The needle's direction from the optical axis before the roll,
+            along image x and y.
+    """
+
+    elevation_deg: float
+    azimuth_deg: float
+    roll_deg: float
+    off_x_deg: float
+    off_y_deg: float
 
 
 @dataclass(frozen=True)
@@ -216,6 +249,8 @@ class DomainDraw:
         phantom_tint, background: Keys of :data:`PHANTOM_TINTS`, :data:`BACKGROUNDS`.
         appearance: The materials.
         thread: The suture, or None.
+        orbit: Where the endoscope orbits the needle, or None (moved along its line of
+            sight, :func:`dolly_offset`).
     """
 
     profile: str
@@ -225,6 +260,7 @@ class DomainDraw:
     background: str
     appearance: Appearance
     thread: ThreadDraw | None = None
+    orbit: OrbitDraw | None = None
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -324,6 +360,15 @@ def draw_domain(
         offset_mm=_u(rng, 2.5, 6.0),
     )
     appearance = replace(appearance, phantom_marks=marks if marked else None)
+    # Revision 3, drawn after everything above, every number whether or not it orbits.
+    orbiting = _u(rng, 0.0, 1.0) < ORBIT_SHARE
+    orbit = OrbitDraw(
+        elevation_deg=_u(rng, *ORBIT_ELEVATION_DEG),
+        azimuth_deg=_u(rng, 0.0, 360.0),
+        roll_deg=_u(rng, -180.0, 180.0),
+        off_x_deg=_u(rng, -ORBIT_OFF_AXIS_DEG, ORBIT_OFF_AXIS_DEG),
+        off_y_deg=_u(rng, -ORBIT_OFF_AXIS_DEG, ORBIT_OFF_AXIS_DEG),
+    )
     return draw, DomainDraw(
         profile=profile,
         light_setup=setup,
@@ -332,6 +377,7 @@ def draw_domain(
         background=background,
         appearance=appearance,
         thread=thread,
+        orbit=orbit if orbiting else None,
     )
 
 
@@ -365,6 +411,39 @@ def dolly_offset(T_world_cam: F64, point_world: F64, distance_mm: float) -> F64:
     T = np.eye(4)
     T[:3, 3] = p - target
     return T
+
+
+def orbit_offset(T_world_cam: F64, point_world: F64, distance_mm: float, orbit: OrbitDraw) -> F64:
+    """The camera move that views ``point_world`` as ``orbit`` says, at depth ``distance_mm``.
+
+    The new camera lies on the line from the point at the orbit's elevation and azimuth,
+    turned so that the point is seen ``off_x_deg``, ``off_y_deg`` off its optical axis (world
+    +Z up in the image), then rolled by ``roll_deg`` about that axis; its distance puts the
+    point at depth (camera z) ``distance_mm``.
+
+    Args:
+        T_world_cam: (4, 4) the drawn (ECM) camera pose, m, OpenCV axes.
+        point_world: (3,) the point, world, m.
+        distance_mm: Wanted depth of the point, mm.
+        orbit: The draw.
+
+    Returns:
+        (4, 4) ``T_cam_newcam`` (m): the new pose is ``T_world_cam @ it``.
+    """
+    e, a = np.deg2rad(orbit.elevation_deg), np.deg2rad(orbit.azimuth_deg)
+    to_camera = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    R_look = look_rotation(-to_camera, up_hint=(0.0, 0.0, 1.0))  # the point on the axis
+    # the point seen along v in the turned camera: turn maps v onto the optical axis
+    v = np.array([np.tan(np.deg2rad(orbit.off_x_deg)), np.tan(np.deg2rad(orbit.off_y_deg)), 1.0])
+    v /= np.linalg.norm(v)
+    axis = np.cross(v, [0.0, 0.0, 1.0])
+    angle = float(np.arccos(np.clip(v[2], -1.0, 1.0)))
+    n = np.linalg.norm(axis)
+    turn = Rotation.from_rotvec(axis / n * angle).as_matrix() if n > 1e-12 else np.eye(3)
+    R = R_look @ turn @ rot_z(np.deg2rad(orbit.roll_deg))
+    depth_per_m = v[2]  # a camera D m away sees the point at depth D · v_z
+    centre = np.asarray(point_world, np.float64) + 1e-3 * distance_mm / depth_per_m * to_camera
+    return np.linalg.solve(T_world_cam, pose(R, centre))
 
 
 # --------------------------------------------------------------------------- the thread
@@ -562,8 +641,12 @@ class DomainReplay:
         self.domain = domain
         self.backend: DomainBackend = backend
         ref = np.median(np.asarray(needle_positions, np.float64).reshape(-1, 3), axis=0)
-        #: ``T_cam_newcam``: the camera moved to the drawn distance (see :func:`dolly_offset`).
-        self.camera_offset = dolly_offset(T_world_cam, ref, domain.distance_mm)
+        #: ``T_cam_newcam``: the camera moved to the drawn distance (:func:`dolly_offset`),
+        #: or placed around the needle (:func:`orbit_offset`).
+        if domain.orbit is None:
+            self.camera_offset = dolly_offset(T_world_cam, ref, domain.distance_mm)
+        else:
+            self.camera_offset = orbit_offset(T_world_cam, ref, domain.distance_mm, domain.orbit)
         backend.set_appearance(domain.appearance)
         log.debug(
             "domain %s: needle at %.1f mm, camera moved by %s m, light %s",
@@ -591,6 +674,9 @@ __all__ = [
     "DEFAULT_DOMAIN",
     "DOMAINS",
     "LIGHT_SETUPS",
+    "MARKS_SHARE",
+    "MARK_COLOURS",
+    "ORBIT_SHARE",
     "PHANTOM_SURFACES",
     "PHANTOM_TINTS",
     "THREAD_COLOURS",
@@ -599,11 +685,14 @@ __all__ = [
     "DomainBackend",
     "DomainDraw",
     "DomainReplay",
+    "MarksDraw",
+    "OrbitDraw",
     "SutureThread",
     "ThreadDraw",
     "dolly_offset",
     "draw_domain",
     "floor_height",
     "needle_tail",
+    "orbit_offset",
     "profile_scene",
 ]

@@ -5,9 +5,9 @@
 default ``paper`` profile, so its renders are unchanged.
 
 Materials change through ``changeVisualShape`` (TinyRenderer multiplies the texture by the
-colour, wrapping values above 1, so every multiplier is ≤ 1); a flat backdrop in the drape's
-plane, out to 3 m and tinted like the background, replaces the renderer's white void in far
-views.
+colour, wrapping values above 1, so every multiplier is ≤ 1); a room tinted like the
+background (the drape's plane continued, walls and a ceiling 0.5 m out, inside the cameras'
+1 m far plane) replaces the renderer's white void in far, tilted and low views.
 
 The thread is a chain of base-only bodies sharing one visual shape: a 6-sided tube of the
 thread's radius, 1.3 segments long so that neighbours overlap at bends and small stretches
@@ -60,31 +60,65 @@ def flat_texture(size: int = 256) -> NDArray[np.uint8]:
     return np.repeat(v[..., None], 3, axis=2)
 
 
-#: The backdrop's grid lines (x and y), mm: a frame from the drape's edge to 3 m out.
-BACKDROP_LINES = (250.0, 400.0, 650.0, 1000.0, 1600.0, 3000.0)
+#: The backdrop's grid lines (x and y), mm: a frame from the drape's edge to the walls, which
+#: stand this far out (every camera lies within 0.15 m of the pad, so all of the room is
+#: nearer than its 1 m far plane: farther geometry is clipped to the white void).
+BACKDROP_LINES = (250.0, 350.0, 500.0)
 #: The drape texture's mean colour: the backdrop continues the drape in the distance.
 DRAPE_MEAN_RGB = (0.20, 0.47, 0.52)
 
 
-def backdrop_mesh() -> ObjectModel:
-    """A flat square frame around the drape (z = −8 mm), out to 3 m, facing up, mm.
+#: Heights of the backdrop walls' cell rows, mm (from the drape's plane to the ceiling).
+BACKDROP_WALL_Z = (-PAD_THICKNESS, 150.0, 300.0, 500.0)
 
-    Without it a far or tilted view sees TinyRenderer's empty (white) background beyond the
-    drape's edge. Cells grow with the distance, and none lies under the drape (TinyRenderer
-    pays for every pixel of a triangle's screen box, hidden or not).
+
+def _quads(corners: NDArray[np.float64], normal: tuple[float, float, float]) -> ObjectModel:
+    """Planar quads (4 corners, xyz, cells) mm, in order around each, as two triangles each,
+    wound to face ``normal``."""
+    first = corners[:, :, 0]
+    if np.dot(np.cross(first[1] - first[0], first[2] - first[0]), normal) < 0:
+        corners = corners[::-1]
+    pts = corners.transpose(2, 0, 1).reshape(-1, 3)
+    base = 4 * np.arange(corners.shape[2])[:, None]
+    faces = np.concatenate([base + np.array([0, 1, 2]), base + np.array([0, 2, 3])])
+    return ObjectModel(pts=pts, faces=faces, normals=np.tile(normal, (len(pts), 1)))
+
+
+def backdrop_mesh() -> ObjectModel:
+    """A room around the scene, mm: a flat square frame around the drape (z = −8 mm) out to
+    the walls, facing up, four walls 0.5 m out and a ceiling 0.5 m up, facing in.
+
+    Without it a far, tilted or low view (an orbiting endoscope looks across the tissue)
+    sees TinyRenderer's empty (white) background beyond the drape's edge. Cells grow with
+    the distance, and none lies under the drape (TinyRenderer pays for every pixel of a
+    triangle's screen box, hidden or not).
     """
     lines = np.array(BACKDROP_LINES)
     g = np.concatenate([-lines[::-1], lines])
-    x0, y0 = np.meshgrid(g[:-1], g[:-1])
-    x1, y1 = np.meshgrid(g[1:], g[1:])
+    x0, y0 = (v.ravel() for v in np.meshgrid(g[:-1], g[:-1]))
+    x1, y1 = (v.ravel() for v in np.meshgrid(g[1:], g[1:]))
     outside = (np.abs(x0 + x1) >= 2 * lines[0]) | (np.abs(y0 + y1) >= 2 * lines[0])
-    x0, x1, y0, y1 = (a[outside] for a in (x0, x1, y0, y1))
-    z = np.full_like(x0, -PAD_THICKNESS)
-    corners = np.stack([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])  # (4, 3, cells)
-    pts = corners.transpose(2, 0, 1).reshape(-1, 3)
-    base = 4 * np.arange(len(x0))[:, None]
-    faces = np.concatenate([base + np.array([0, 1, 2]), base + np.array([0, 2, 3])])
-    return ObjectModel(pts=pts, faces=faces, normals=np.tile([0.0, 0.0, 1.0], (len(pts), 1)))
+    parts = []
+    for z, up, cells in ((-PAD_THICKNESS, 1.0, outside), (BACKDROP_WALL_Z[-1], -1.0, ...)):
+        a, b, c, d = (v[cells] for v in (x0, x1, y0, y1))  # the floor: around the drape
+        h = np.full_like(a, z)
+        parts.append(_quads(np.stack([[a, c, h], [b, c, h], [b, d, h], [a, d, h]]), (0, 0, up)))
+    a0, h0 = (v.ravel() for v in np.meshgrid(g[:-1], BACKDROP_WALL_Z[:-1]))
+    a1, h1 = (v.ravel() for v in np.meshgrid(g[1:], BACKDROP_WALL_Z[1:]))
+    for sign in (1.0, -1.0):  # walls at x = ±3 m and y = ±3 m, facing the centre
+        w = np.full_like(a0, sign * lines[-1])
+        parts.append(
+            _quads(np.stack([[w, a0, h0], [w, a1, h0], [w, a1, h1], [w, a0, h1]]), (-sign, 0, 0))
+        )
+        parts.append(
+            _quads(np.stack([[a0, w, h0], [a1, w, h0], [a1, w, h1], [a0, w, h1]]), (0, -sign, 0))
+        )
+    offsets = np.cumsum([0] + [len(m.pts) for m in parts[:-1]])
+    return ObjectModel(
+        pts=np.concatenate([m.pts for m in parts]),
+        faces=np.concatenate([m.faces + o for m, o in zip(parts, offsets, strict=True)]),
+        normals=np.concatenate([m.normals for m in parts]),
+    )
 
 
 def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appearance) -> None:

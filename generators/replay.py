@@ -271,13 +271,14 @@ class _View:
     ) -> _View:
         """The views of a draw; ``offset`` (4×4 ``T_cam_newcam``) moves the stereo rig."""
 
-        def moved(T: np.ndarray) -> np.ndarray:
-            return T if offset is None else T @ offset
-
-        T_world_cam = moved(ecm_camera_pose(draw.ecm_joints))
+        T_left = ecm_camera_pose(draw.ecm_joints)
+        T_world_cam = T_left if offset is None else T_left @ offset
         right = None
-        if settings.stereo:
-            right = _camera(settings, moved(ecm_camera_pose(draw.ecm_joints, right=True)))
+        if settings.stereo:  # the rig moves as one: the right eye keeps its pose to the left
+            T_right = ecm_camera_pose(draw.ecm_joints, right=True)
+            if offset is not None:
+                T_right = T_world_cam @ np.linalg.solve(T_left, T_right)
+            right = _camera(settings, T_right)
         return cls(
             T_world_cam=T_world_cam,
             camera=_camera(settings, T_world_cam),
@@ -309,6 +310,8 @@ def _new_record(
             **dressing.domain.to_json(),
             "camera_offset_m": dressing.camera_offset[:3, 3].tolist(),
         }
+        if dressing.domain.orbit is not None:  # the orbit turns the camera too
+            record["domain"]["camera_offset_R"] = dressing.camera_offset[:3, :3].tolist()
     return record
 
 

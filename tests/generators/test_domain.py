@@ -14,16 +14,28 @@ import pytest
 
 from bopsurg.errors import InputError
 from bopsurg.generators import generate as gen
-from bopsurg.generators.backend import DEFAULT_NEEDLE_POSE, CameraSpec, LightSpec, SceneSpec
+from bopsurg.generators.backend import (
+    DEFAULT_ECM_JOINTS,
+    DEFAULT_NEEDLE_POSE,
+    CameraSpec,
+    LightSpec,
+    SceneSpec,
+)
 from bopsurg.generators.domain import (
+    DOMAIN_REVISIONS,
     MARK_COLOURS,
     MARKS_SHARE,
+    ORBIT_ELEVATION_DEG,
+    ORBIT_SHARE,
     WIDE_DISTANCE_MM,
+    MarksDraw,
+    OrbitDraw,
     SutureThread,
     dolly_offset,
     draw_domain,
     floor_height,
     needle_tail,
+    orbit_offset,
 )
 from bopsurg.generators.kinematics import ecm_camera_pose, look_rotation, pose
 from bopsurg.generators.pybullet_scene import (
@@ -51,26 +63,123 @@ def test_paper_profile_is_the_draw_of_before():
         draw_domain(np.random.default_rng(0), 0, "nope")
 
 
-def test_wide_revision_2_keeps_every_draw_of_revision_1_and_adds_targets():
-    """Revision 1's draws are recorded here (seed 4, replay 0), so the targets drawn last
-    change nothing drawn before them."""
+def test_each_wide_revision_keeps_the_draws_of_the_one_before():
+    """Revision 1's and 2's draws are recorded here (from their code), so what a later
+    revision draws last changes nothing drawn before it."""
     _, domain = draw_domain(np.random.default_rng(4), 0, "wide")
     assert domain is not None
     assert domain.distance_mm == pytest.approx(67.71535238392063, abs=1e-12)
     assert domain.thread is not None
     assert domain.thread.lay_seed == 1070443482
     assert (domain.light_setup, domain.phantom_tint) == ("bright", "yellow")
-    assert GenerateSettings(domain="wide").to_json()["domain_revision"] == 2
-    marks = []
+    _, domain = draw_domain(np.random.default_rng(8), 8, "wide")  # revision 2: the targets
+    assert domain is not None
+    assert domain.appearance.phantom_marks == MarksDraw(
+        "square", "blue", 3.356799586481439, 9.64398400542885, 3.2807099489468046
+    )
+    assert GenerateSettings(domain="wide").to_json()["domain_revision"] == 3
+
+
+def test_wide_draws_targets_and_orbits_on_their_shares_of_replays():
+    marks, orbits = [], []
     for seed in range(400):
         _, d = draw_domain(np.random.default_rng(seed), seed % 20, "wide")
         assert d is not None
         marks.append(d.appearance.phantom_marks)
+        orbits.append(d.orbit)
     shown = [m for m in marks if m is not None]
     assert abs(len(shown) / len(marks) - MARKS_SHARE) < 0.08
     assert {m.shape for m in shown} == set(MARK_SHAPES)
     assert {m.colour for m in shown} == set(MARK_COLOURS)
     assert all(2.0 <= m.size_mm <= 5.0 and 2.5 <= m.offset_mm <= 6.0 for m in shown)
+    orbiting = [o for o in orbits if o is not None]
+    assert abs(len(orbiting) / len(orbits) - ORBIT_SHARE) < 0.08
+    elevation = np.array([o.elevation_deg for o in orbiting])
+    assert ORBIT_ELEVATION_DEG[0] <= elevation.min() < 15.0
+    assert 65.0 < elevation.max() <= ORBIT_ELEVATION_DEG[1]
+    roll = np.array([o.roll_deg for o in orbiting])
+    assert np.histogram(roll, bins=4, range=(-180, 180))[0].min() > 0.15 * len(roll)
+
+
+@pytest.mark.parametrize(
+    "orbit",
+    [
+        OrbitDraw(
+            elevation_deg=30.0, azimuth_deg=120.0, roll_deg=0.0, off_x_deg=0.0, off_y_deg=0.0
+        ),
+        OrbitDraw(
+            elevation_deg=12.0, azimuth_deg=300.0, roll_deg=-150.0, off_x_deg=14.0, off_y_deg=-9.0
+        ),
+        OrbitDraw(
+            elevation_deg=90.0, azimuth_deg=0.0, roll_deg=75.0, off_x_deg=-5.0, off_y_deg=15.0
+        ),
+    ],
+)
+def test_the_orbiting_endoscope_sees_the_needle_as_drawn(orbit):
+    T0 = ecm_camera_pose(DEFAULT_ECM_JOINTS)
+    needle = DEFAULT_NEEDLE_POSE[:3, 3] + np.array([0.004, -0.003, 0.002])
+    T = T0 @ orbit_offset(T0, needle, 42.0, orbit)
+    R, c = T[:3, :3], T[:3, 3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    p = R.T @ (needle - c)  # the needle in the new camera, m
+    assert 1e3 * p[2] == pytest.approx(42.0, abs=1e-9)  # at the drawn depth
+    # seen off the axis as drawn, then rolled about the axis with the image
+    off = np.tan(np.deg2rad([orbit.off_x_deg, orbit.off_y_deg]))
+    roll = np.deg2rad(orbit.roll_deg)
+    turned = np.array([[np.cos(roll), np.sin(roll)], [-np.sin(roll), np.cos(roll)]]) @ off
+    np.testing.assert_allclose(p[:2] / p[2], turned, atol=1e-12)
+    # from the elevation and azimuth drawn, above the tissue
+    d = (c - needle) / np.linalg.norm(c - needle)
+    assert np.rad2deg(np.arcsin(d[2])) == pytest.approx(orbit.elevation_deg, abs=1e-9)
+    if orbit.elevation_deg < 90.0:
+        azimuth = np.rad2deg(np.arctan2(d[1], d[0])) % 360.0
+        assert azimuth == pytest.approx(orbit.azimuth_deg, abs=1e-9)
+    assert c[2] > 0.0
+    if orbit.roll_deg == 0.0 and orbit.elevation_deg < 90.0:  # world +Z is image up
+        up = R.T @ np.array([0.0, 0.0, 1.0])
+        assert up[0] == pytest.approx(0.0, abs=1e-12)
+        assert up[1] < 0.0
+
+
+def test_a_turned_stereo_rig_keeps_its_right_eye_beside_the_left():
+    from bopsurg.generators.replay import _View
+    from bopsurg.generators.viewpoints import draw_replay as draw_view
+
+    settings = GenerateSettings(stereo=True)
+    draw = draw_view(np.random.default_rng(0), 3)
+    still = _View.of(settings, draw)
+    orbit = OrbitDraw(
+        elevation_deg=25.0, azimuth_deg=200.0, roll_deg=40.0, off_x_deg=5.0, off_y_deg=2.0
+    )
+    moved = _View.of(
+        settings, draw, orbit_offset(still.T_world_cam, DEFAULT_NEEDLE_POSE[:3, 3], 60.0, orbit)
+    )
+    assert still.right is not None
+    assert moved.right is not None
+    rig = np.linalg.solve(still.camera.T_world_cam, still.right.T_world_cam)
+    np.testing.assert_allclose(
+        np.linalg.solve(moved.camera.T_world_cam, moved.right.T_world_cam), rig, atol=1e-12
+    )
+
+
+def test_the_backdrop_room_faces_in_and_lies_inside_the_far_plane():
+    pytest.importorskip("pybullet")
+    from bopsurg.generators.pybullet_domain import backdrop_mesh
+
+    m = backdrop_mesh()
+    tri = m.pts[m.faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    stored = m.normals[m.faces[:, 0]]
+    np.testing.assert_allclose((n * stored).sum(1), 1.0, atol=1e-9)  # wound as its normals say
+    inward = (np.array([0.0, 0.0, 100.0]) - tri.mean(1)) * stored
+    assert (inward.sum(1) > 0).all()  # every face towards the pad
+    # any camera within 0.15 m of the pad (an orbit at 120 mm, the ECM's poses) sees the
+    # whole room nearer than the renderer's 1 m far plane
+    corners = np.array([[sx, sy, 150.0] for sx in (-150.0, 150.0) for sy in (-150.0, 150.0)])
+    far = np.linalg.norm(m.pts[None] - corners[:, None], axis=2).max()
+    assert far < 1000.0 * CameraSpec(K=np.eye(3), T_world_cam=np.eye(4), width=1, height=1).far
 
 
 def _texel(image: np.ndarray, x_mm: float, y_mm: float) -> np.ndarray:
@@ -108,16 +217,20 @@ def test_bad_targets_are_refused():
         paint_marks(grey, shape="dot", size_mm=3, spacing_mm=0, offset_mm=4, rgb=(1, 0, 0))
 
 
-def test_a_split_of_an_older_wide_revision_is_not_resumed(fake_bag, tmp_path):
+@pytest.mark.parametrize("was", [1, 2])
+def test_a_split_of_an_older_wide_revision_is_not_resumed(fake_bag, tmp_path, was):
     settings = GenerateSettings(replays=1, seed=3, min_visib=0.0, domain="wide")
-    old = {**settings.to_json()}
-    del old["domain_revision"]  # what revision 1 wrote
+    old = {**settings.to_json(), "domain_revision": was}
+    if was == 1:
+        del old["domain_revision"]  # revision 1 wrote none
     info = tmp_path / "ds/test/bopsurg_generate.json"
     info.parent.mkdir(parents=True)
     info.write_text(json.dumps({"split": "test", "settings": old, "bags": []}))
     before = info.read_bytes()
+    now = DOMAIN_REVISIONS["wide"]
     with pytest.raises(
-        InputError, match="drawn by revision 1 of --domain wide, this bopsurg draws revision 2"
+        InputError,
+        match=f"drawn by revision {was} of --domain wide, this bopsurg draws revision {now}",
     ):
         gen._write_dataset_files(tmp_path / "ds", "test", [str(fake_bag)], settings)
     assert info.read_bytes() == before
