@@ -121,7 +121,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=d.domain,
         help="randomisation profile (default: paper): 'paper' draws the ECM viewpoint and "
         "light only, as the paper's replays; 'wide' also draws a camera-to-needle distance of "
-        "20-120 mm, a light set-up, phantom surface and colour, background, a specular "
+        "20-120 mm (on half the replays with the endoscope orbiting the needle: any side, "
+        "10-70 deg above the tissue, any roll), a light set-up, phantom surface and colour, "
+        "background, a specular "
         "needle, grey/black materials on Large-Needle-Driver-like instruments and a simulated "
         "suture thread from the needle's tail (an occluder in the needle's masks), and on "
         "half the replays suture targets painted beside the incisions; every draw is "
