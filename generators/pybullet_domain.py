@@ -6,7 +6,7 @@ default ``paper`` profile, so its renders are unchanged.
 
 Materials change through ``changeVisualShape`` (TinyRenderer multiplies the texture by the
 colour, wrapping values above 1, so every multiplier is ≤ 1); a room tinted like the
-background (the drape's plane continued, walls and a ceiling 0.5 m out, inside the cameras'
+background (the drape's plane continued, walls and a ceiling 0.4 m out, inside the cameras'
 1 m far plane) replaces the renderer's white void in far, tilted and low views.
 
 The thread is a chain of base-only bodies sharing one visual shape: a 6-sided tube of the
@@ -61,15 +61,17 @@ def flat_texture(size: int = 256) -> NDArray[np.uint8]:
 
 
 #: The backdrop's grid lines (x and y), mm: a frame from the drape's edge to the walls, which
-#: stand this far out (every camera lies within 0.15 m of the pad, so all of the room is
-#: nearer than its 1 m far plane: farther geometry is clipped to the white void).
-BACKDROP_LINES = (250.0, 350.0, 500.0)
+#: stand this far out. Cameras stay within 0.19 m of the pad's centre horizontally and 0.13 m
+#: above it (the ECM's poses, the dolly and the orbit at up to 120 mm from the needle), so
+#: all of the room lies nearer than their 1 m far plane: farther geometry would be clipped
+#: to the white void.
+BACKDROP_LINES = (250.0, 320.0, 400.0)
 #: The drape texture's mean colour: the backdrop continues the drape in the distance.
 DRAPE_MEAN_RGB = (0.20, 0.47, 0.52)
 
 
 #: Heights of the backdrop walls' cell rows, mm (from the drape's plane to the ceiling).
-BACKDROP_WALL_Z = (-PAD_THICKNESS, 150.0, 300.0, 500.0)
+BACKDROP_WALL_Z = (-PAD_THICKNESS, 130.0, 260.0, 400.0)
 
 
 def _quads(corners: NDArray[np.float64], normal: tuple[float, float, float]) -> ObjectModel:
@@ -86,7 +88,7 @@ def _quads(corners: NDArray[np.float64], normal: tuple[float, float, float]) -> 
 
 def backdrop_mesh() -> ObjectModel:
     """A room around the scene, mm: a flat square frame around the drape (z = −8 mm) out to
-    the walls, facing up, four walls 0.5 m out and a ceiling 0.5 m up, facing in.
+    the walls, facing up, four walls 0.4 m out and a ceiling 0.4 m up, facing in.
 
     Without it a far, tilted or low view (an orbiting endoscope looks across the tissue)
     sees TinyRenderer's empty (white) background beyond the drape's edge. Cells grow with
@@ -105,7 +107,7 @@ def backdrop_mesh() -> ObjectModel:
         parts.append(_quads(np.stack([[a, c, h], [b, c, h], [b, d, h], [a, d, h]]), (0, 0, up)))
     a0, h0 = (v.ravel() for v in np.meshgrid(g[:-1], BACKDROP_WALL_Z[:-1]))
     a1, h1 = (v.ravel() for v in np.meshgrid(g[1:], BACKDROP_WALL_Z[1:]))
-    for sign in (1.0, -1.0):  # walls at x = ±3 m and y = ±3 m, facing the centre
+    for sign in (1.0, -1.0):  # walls at x = ±0.4 m and y = ±0.4 m, facing the centre
         w = np.full_like(a0, sign * lines[-1])
         parts.append(
             _quads(np.stack([[w, a0, h0], [w, a1, h0], [w, a1, h1], [w, a0, h1]]), (-sign, 0, 0))
