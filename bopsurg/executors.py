@@ -137,9 +137,9 @@ class RayExecutor:
             # Ray's C++ core logs the failures below on fd 2 from its own threads; the user
             # gets our one-line error instead, and the core's lines go to the debug log.
             with _stderr_to_log("ray.init and the first actor"):
-                if started_here:
-                    _connect(ray, self.address)
                 try:
+                    if started_here:
+                        _connect(ray, self.address)
                     counter = _first_actor(ray, self.address)
                 except BopsurgError:
                     if started_here:

@@ -109,9 +109,10 @@ class _FakeRayError(Exception):
     pass
 
 
-def _fake_ray(calls: list[str]) -> types.ModuleType:
-    """Just enough of ``ray`` for a driver whose first actor the cluster cannot serve; its
-    'C++ core' writes to file descriptor 2, as Ray's does from its own threads."""
+def _fake_ray(calls: list[str], fail_init: bool = False) -> types.ModuleType:
+    """Just enough of ``ray`` for a driver that cannot connect (``fail_init``) or whose first
+    actor the cluster cannot serve; its 'C++ core' writes to file descriptor 2, as Ray's does
+    from its own threads."""
     ray = types.ModuleType("ray")
 
     def core_log(line: str) -> None:
@@ -131,8 +132,10 @@ def _fake_ray(calls: list[str]) -> types.ModuleType:
         raise _FakeRayError("actor died")
 
     def init(**_kwargs):
-        calls.append("init")
         core_log("connecting")
+        if fail_init:
+            raise ConnectionError("Failed to connect to the cluster")
+        calls.append("init")
 
     def is_initialized() -> bool:
         return "init" in calls and "shutdown" not in calls
@@ -148,21 +151,25 @@ def _fake_ray(calls: list[str]) -> types.ModuleType:
     return ray
 
 
+@pytest.mark.parametrize("fail_init", [False, True], ids=["first actor", "ray.init"])
 def test_a_driver_the_cluster_cannot_serve_gets_one_line_and_nothing_else(
-    monkeypatch, capfd, caplog
+    monkeypatch, capfd, caplog, fail_init
 ):
     calls: list[str] = []
-    monkeypatch.setitem(sys.modules, "ray", _fake_ray(calls))
+    monkeypatch.setitem(sys.modules, "ray", _fake_ray(calls, fail_init))
     monkeypatch.setitem(sys.modules, "ray._raylet", types.ModuleType("ray._raylet"))
     for var in AUTH_VARS:
         monkeypatch.delenv(var, raising=False)
+    expected = "cannot connect to a local Ray" if fail_init else "cannot run this driver's work"
     with (
         caplog.at_level(logging.DEBUG, logger="bopsurg.executors"),
-        pytest.raises(BopsurgError, match="cannot run this driver's work") as err,
+        pytest.raises(BopsurgError, match=expected) as err,
     ):
         RayExecutor(None).map(lambda unit, report: unit, [1])
     assert "\n" not in str(err.value)
     assert capfd.readouterr().err == ""  # the core's lines went to the debug log instead
-    assert "Failed to register actor" in caplog.text
-    assert "stopping" in caplog.text  # shut down while still captured
-    assert calls == ["init", "shutdown"]
+    assert "connecting" in caplog.text
+    if not fail_init:
+        assert "Failed to register actor" in caplog.text
+        assert "stopping" in caplog.text  # shut down while still captured
+        assert calls == ["init", "shutdown"]
