@@ -161,6 +161,9 @@ def test_a_driver_the_cluster_cannot_serve_gets_one_line_and_nothing_else(
     for var in AUTH_VARS:
         monkeypatch.delenv(var, raising=False)
     expected = "cannot connect to a local Ray" if fail_init else "cannot run this driver's work"
+    # only this test's log capture on the root logger: a CLI test run before it in this worker
+    # may have left basicConfig's handler there, on its own (closed) capture stream
+    monkeypatch.setattr(logging.getLogger(), "handlers", [caplog.handler])
     with (
         caplog.at_level(logging.DEBUG, logger="bopsurg.executors"),
         pytest.raises(BopsurgError, match=expected) as err,
