@@ -436,10 +436,7 @@ def orbit_offset(T_world_cam: F64, point_world: F64, distance_mm: float, orbit: 
     # the point seen along v in the turned camera: turn maps v onto the optical axis
     v = np.array([np.tan(np.deg2rad(orbit.off_x_deg)), np.tan(np.deg2rad(orbit.off_y_deg)), 1.0])
     v /= np.linalg.norm(v)
-    axis = np.cross(v, [0.0, 0.0, 1.0])
-    angle = float(np.arccos(np.clip(v[2], -1.0, 1.0)))
-    n = np.linalg.norm(axis)
-    turn = Rotation.from_rotvec(axis / n * angle).as_matrix() if n > 1e-12 else np.eye(3)
+    turn = Rotation.align_vectors([[0.0, 0.0, 1.0]], [v])[0].as_matrix()
     R = R_look @ turn @ rot_z(np.deg2rad(orbit.roll_deg))
     depth_per_m = v[2]  # a camera D m away sees the point at depth D · v_z
     centre = np.asarray(point_world, np.float64) + 1e-3 * distance_mm / depth_per_m * to_camera

@@ -100,11 +100,15 @@ def backdrop_mesh() -> ObjectModel:
     x0, y0 = (v.ravel() for v in np.meshgrid(g[:-1], g[:-1]))
     x1, y1 = (v.ravel() for v in np.meshgrid(g[1:], g[1:]))
     outside = (np.abs(x0 + x1) >= 2 * lines[0]) | (np.abs(y0 + y1) >= 2 * lines[0])
-    parts = []
-    for z, up, cells in ((-PAD_THICKNESS, 1.0, outside), (BACKDROP_WALL_Z[-1], -1.0, ...)):
-        a, b, c, d = (v[cells] for v in (x0, x1, y0, y1))  # the floor: around the drape
-        h = np.full_like(a, z)
-        parts.append(_quads(np.stack([[a, c, h], [b, c, h], [b, d, h], [a, d, h]]), (0, 0, up)))
+
+    def level(x0: F64, x1: F64, y0: F64, y1: F64, z: float, up: float) -> ObjectModel:
+        h = np.full_like(x0, z)
+        return _quads(np.stack([[x0, y0, h], [x1, y0, h], [x1, y1, h], [x0, y1, h]]), (0, 0, up))
+
+    parts = [
+        level(x0[outside], x1[outside], y0[outside], y1[outside], -PAD_THICKNESS, 1.0),  # floor
+        level(x0, x1, y0, y1, BACKDROP_WALL_Z[-1], -1.0),  # ceiling, over everything
+    ]
     a0, h0 = (v.ravel() for v in np.meshgrid(g[:-1], BACKDROP_WALL_Z[:-1]))
     a1, h1 = (v.ravel() for v in np.meshgrid(g[1:], BACKDROP_WALL_Z[1:]))
     for sign in (1.0, -1.0):  # walls at x = ±0.4 m and y = ±0.4 m, facing the centre
