@@ -11,7 +11,13 @@ the paper's table, AR_MSSD / AR_MSPD, the median translation error per camera ax
 CPU time per 640x480 image (network, refinement), 2 threads.
 
     python bench/bench_refine.py DATASET --out bench/out/refine --segmenter SEG.pt \
-        [--oracle] [--stride 1] [--fit prior_weight=0.3] [--from-gt] [--option zoom=1]
+        [--oracle] [--stride 1] [--fit prior_weight=0.3] [--from-gt] [--oracle-boxes]
+        [--option zoom=1]
+
+A dataset whose needle model is not the estimator's (an imported ``bopsurg import
+ambf-yaml``) is measured in its own frame, as ``bopsurg predict`` maps it
+(:mod:`bopsurg.model_frames`): the stages run in the estimator's frame (a GT start mapped
+into it) and every pose is mapped back before it is scored.
 
 SEG.pt comes from ``python -m bopsurg.models.refine.train_seg TRAIN_DATASET --out RUN``.
 
@@ -31,6 +37,7 @@ import numpy as np
 import torch
 
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.detections import gt_detections
 from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.cli.main import main as bopsurg
@@ -39,6 +46,7 @@ from bopsurg.evaluation.summary import format_table
 from bopsurg.models.estimator import REFINE_FIT, SHIPPED
 from bopsurg.models.pose.roi import crop
 from bopsurg.models.refine import ArcModel, FitSettings, NeedleRefiner, Segmenter
+from bopsurg.prediction import dataset_mappings
 
 PAPER = {"re": 7.74, "te": 1.49, "mssd": 1.43}
 #: Evidence grid side (px) of the oracle stage when no segmenter sets it.
@@ -132,6 +140,12 @@ def main() -> None:
         "(what the fit can pin down at best)",
     )
     ap.add_argument(
+        "--oracle-boxes",
+        action="store_true",
+        help="the GT visible boxes instead of the detector's (the stages measured without "
+        "the detector's misses)",
+    )
+    ap.add_argument(
         "--fit",
         action="append",
         default=[],
@@ -161,8 +175,16 @@ def main() -> None:
         seg = Segmenter(args.segmenter, torch.device("cpu"), args.mask)
         refiner = NeedleRefiner.for_segmenter(seg, settings)
     oracle_mask = args.mask or (seg.mask if refiner is not None else "visible")
-    info = ds.models_info[1]["keypoints"]
-    arc = ArcModel.from_keypoints(info["tail"], info["tip"])
+    mapping = dataset_mappings(ds, est).get(1)  # None: the dataset's needle is the estimator's
+    if mapping is None:
+        info = ds.models_info[1]["keypoints"]
+        arc = ArcModel.from_keypoints(info["tail"], info["tip"])
+    elif refiner is not None:
+        print(mapping.describe())
+        arc = seg.arc  # the stages run in the estimator's frame
+    else:
+        raise SystemExit("a dataset with another needle model needs --segmenter (its arc)")
+    boxes = gt_detections(ds) if args.oracle_boxes else {}
     oracle = NeedleRefiner(
         gt_mask_evidence(np.zeros((1, 1), bool)),
         arc,
@@ -181,7 +203,10 @@ def main() -> None:
         scene = ds.scene(s)
         rgb, K = load_rgb(scene.rgb_path(i)), scene.camera[i].K
         t0 = time.perf_counter()
-        pred = est.predict(rgb, K)
+        found = boxes.get((s, i)) if args.oracle_boxes else None
+        if args.oracle_boxes and found is None:
+            continue  # nothing of the needle visible: no box to run on
+        pred = est.predict(rgb, K, boxes=found)
         t1 = time.perf_counter()
         if len(pred) == 0:
             continue
@@ -194,6 +219,8 @@ def main() -> None:
         if args.from_gt:  # one needle per image: its first GT
             g = scene.gt[i][0]
             R0, t0 = np.repeat(g.R[None], len(pred), 0), np.repeat(g.t[None], len(pred), 0)
+            if mapping is not None:
+                R0, t0 = mapping.unmap_poses(R0, t0)
         # the estimator's refinement stage (re-crops included, not from a GT start)
         recrop = 0.0 if args.from_gt else None
         if refiner is not None:
@@ -208,6 +235,8 @@ def main() -> None:
             poses["oracle"] = est.refine_needles(head, image, K, box, R0, t0, oracle, recrop)[:2]
             oracle_ms.append(1000 * (time.perf_counter() - t2))
         for name, (Rn, tn) in poses.items():
+            if mapping is not None:  # scored in the dataset's frame
+                Rn, tn = mapping.map_poses(Rn, tn)
             for k in range(len(pred)):
                 rows[name].append((s, i, int(pred.obj_id[k]), float(pred.score[k]), Rn[k], tn[k]))
 

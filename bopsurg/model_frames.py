@@ -69,6 +69,12 @@ class FrameMapping:
         t_t = np.asarray(t, dtype=np.float64) - R_t @ self.a
         return R_t, t_t
 
+    def unmap_poses(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The inverse of :meth:`map_poses`: poses of the target model (e.g. a dataset's GT)
+        → poses of the source model (the estimator's), R (N, 3, 3), t (N, 3) mm."""
+        R_t = np.asarray(R, dtype=np.float64)
+        return R_t @ self.A, np.asarray(t, dtype=np.float64) + R_t @ self.a
+
 
 def arc_alignment(
     source: NeedleArc,

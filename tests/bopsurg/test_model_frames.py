@@ -47,6 +47,9 @@ def test_mapped_poses_put_the_dataset_model_where_the_estimator_saw_its_own():
     seen = np.einsum("nij,vj->nvi", R, ours.pts) + t[:, None]
     mapped = np.einsum("nij,vj->nvi", R2, theirs.pts) + t2[:, None]
     assert np.abs(mapped - seen).max() < 1e-4  # mm: the same surface in the camera
+    R3, t3 = m.unmap_poses(R2, t2)  # and back: the estimator's poses again
+    np.testing.assert_allclose(R3, R, atol=1e-12)
+    np.testing.assert_allclose(t3, t, atol=1e-9)
     assert "theirs.ply" in m.describe()
     assert "\n" not in m.describe()
 
