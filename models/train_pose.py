@@ -15,6 +15,7 @@ the GT visible boxes and reports the median RE / TE / MSSD with bopsurg's own me
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,6 +46,7 @@ from bopsurg.models.pose.losses import gdr_losses
 from bopsurg.models.pose.network import GdrPoseNet
 from bopsurg.models.pose.roi import crop, dzi_boxes, roi_coord_2d
 from bopsurg.models.pose.targets import XyzNormaliser, farthest_point_sampling, xyz_to_region
+from bopsurg.models.roll import roll_batch
 from bopsurg.models.run_config import LoaderConfig, resolved, write_config
 
 log = logging.getLogger(__name__)
@@ -78,15 +80,23 @@ class PoseRecipe:
     #: empty = all. Mirroring only the splits that carry a cue to the face (a suture thread
     #: at the tail: ``--domain wide``) keeps what the others teach about their usual face.
     mirror_splits: tuple[str, ...] = ()
+    #: Share of the samples seen by a camera turned about its optical axis
+    #: (:func:`bopsurg.models.roll.roll_batch`: the needle in other image orientations,
+    #: exactly), by an angle uniform in ±``roll_deg``; 0 draws nothing, so older recipes train
+    #: as before.
+    roll: float = 0.0
+    roll_deg: float = 180.0
     #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
 
     def __post_init__(self) -> None:
-        for name in ("mirror", "hue_whole"):
+        for name in ("mirror", "hue_whole", "roll"):
             share = getattr(self, name)
             if not 0.0 <= share <= 1.0:
                 raise ValueError(f"{name} is a share of the samples, in [0, 1], got {share}")
+        if not 0.0 <= self.roll_deg <= 180.0:
+            raise ValueError(f"roll_deg is the largest turn, in [0, 180] deg, got {self.roll_deg}")
 
     def schedule(self) -> training.Schedule:
         """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
@@ -311,6 +321,8 @@ def train_pose(
             "mirror": 0.0,
             "mirror_splits": [],
             "hue_whole": 0.0,
+            "roll": 0.0,
+            "roll_deg": 180.0,
         },
     }
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
@@ -391,6 +403,10 @@ def _step_fn(
                 flip &= mirrorable[batch.idx]
             assert reflection is not None  # made by train_pose whenever recipe.mirror > 0
             batch = mirror_batch(batch, flip, reflection)
+        if recipe.roll > 0:  # after the mirror: both are exact, so either order is
+            u, v = torch.rand(2, len(batch.idx), generator=gen, device=gen.device).cpu()
+            turn = torch.where(u < recipe.roll, (2 * v - 1) * math.radians(recipe.roll_deg), 0.0)
+            batch = roll_batch(batch, turn)
         seeds = batch_seeds(seed, epoch, batch.idx)
         roi_img, coord2d, target = roi_batch(
             batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds, recipe.hue_whole

@@ -111,6 +111,8 @@ def test_the_file_sets_fields_and_flags_override_it(tmp_path, capsys):
         ("loader: {cache_items: -2}\n", "loader.cache_items must be >= 0"),
         ("recipe: {hue_whole: 1.5}\n", "recipe: hue_whole is a share of the samples, in [0, 1]"),
         ("recipe: {mirror: -0.1}\n", "recipe: mirror is a share of the samples, in [0, 1]"),
+        ("recipe: {roll: 2}\n", "recipe: roll is a share of the samples, in [0, 1]"),
+        ("recipe: {roll_deg: 270}\n", "recipe: roll_deg is the largest turn, in [0, 180] deg"),
     ],
 )
 def test_bad_files_are_one_line_errors_naming_file_and_key(tmp_path, capsys, text, needle):
@@ -196,7 +198,8 @@ def test_the_detector_recipe_sets_its_colour_jitter(dataset, tmp_path, capsys):
 
 
 def test_a_pose_run_from_before_the_mirror_resumes(tmp_path):
-    """train_state.json written before ``recipe.mirror``, ``mirror_splits`` and ``hue_whole``."""
+    """train_state.json written before ``recipe.mirror``, ``mirror_splits``, ``hue_whole``,
+    ``roll`` and ``roll_deg``."""
     from bopsurg.bop.dataset import BopDataset
     from tests.models.plane_depth import write_plane_depth
 
@@ -208,10 +211,11 @@ def test_a_pose_run_from_before_the_mirror_resumes(tmp_path):
     assert main([*args, "--epochs", "1"]) == 0
     settings = json.loads((out / "train_state.json").read_text())
     del settings["recipe"]["mirror"], settings["recipe"]["mirror_splits"]
-    del settings["recipe"]["hue_whole"]
+    del settings["recipe"]["hue_whole"], settings["recipe"]["roll"], settings["recipe"]["roll_deg"]
     (out / "train_state.json").write_text(json.dumps(settings))
     assert main([*args, "--epochs", "2"]) == 0
-    assert json.loads((out / "train_state.json").read_text())["recipe"]["mirror"] == 0.0
+    recipe = json.loads((out / "train_state.json").read_text())["recipe"]
+    assert (recipe["mirror"], recipe["roll"]) == (0.0, 0.0)
 
 
 RECIPES = sorted((Path(__file__).parents[2] / "bench" / "recipes").glob("*.yaml"))
