@@ -63,7 +63,7 @@ DEFAULT_DOMAIN = "paper"
 #: Revision of each non-default profile's draw, recorded with the settings
 #: (``settings.domain_revision``): a split drawn by an older revision is not resumed by a
 #: newer one (its finished replays would look different from the rest).
-DOMAIN_REVISIONS = {"wide": 3}  # 2: suture targets; 3: the orbiting endoscope
+DOMAIN_REVISIONS = {"wide": 4}  # 2: suture targets; 3: the orbiting endoscope; 4: the groove
 
 #: Camera-to-needle distance range of ``wide``, mm (the needle's median depth per replay).
 WIDE_DISTANCE_MM = (20.0, 120.0)
@@ -132,6 +132,9 @@ MARK_COLOURS: dict[str, tuple[float, float, float]] = {
 MARKS_SHARE = 0.5
 #: Share of ``wide`` replays whose endoscope orbits the needle (:class:`OrbitDraw`).
 ORBIT_SHARE = 0.5
+#: Share of ``wide`` replays whose pad is the ``groove`` pad (one crease the pad's length
+#: between two lips, as the AMBF simulator's phantom has) instead of the incised one.
+GROOVE_SHARE = 0.5
 #: Elevation of an orbiting endoscope above the tissue plane, seen from the needle, degrees.
 ORBIT_ELEVATION_DEG = (10.0, 70.0)
 #: Largest angle of the needle from the optical axis, across and down the image, degrees.
@@ -192,6 +195,7 @@ class Appearance:
         needle_rgba, needle_specular: The needle's colour and specular colour.
         shaft_rgba, metal_rgba, jaw_rgba: Instrument shaft, wrist/hub and jaw colours.
         phantom_marks: Suture targets painted on the phantom, or None.
+        phantom_shape: The pad's geometry (:data:`~.pybullet_scene.PAD_SHAPES`).
     """
 
     phantom_surface: str = "tissue"
@@ -204,6 +208,7 @@ class Appearance:
     metal_rgba: tuple[float, float, float, float] = (0.64, 0.65, 0.67, 1.0)
     jaw_rgba: tuple[float, float, float, float] = (0.55, 0.56, 0.58, 1.0)
     phantom_marks: MarksDraw | None = None
+    phantom_shape: str = "incisions"
 
 
 @dataclass(frozen=True)
@@ -369,6 +374,9 @@ def draw_domain(
         off_x_deg=_u(rng, -ORBIT_OFF_AXIS_DEG, ORBIT_OFF_AXIS_DEG),
         off_y_deg=_u(rng, -ORBIT_OFF_AXIS_DEG, ORBIT_OFF_AXIS_DEG),
     )
+    # Revision 4, drawn last: the groove pad.
+    if _u(rng, 0.0, 1.0) < GROOVE_SHARE:
+        appearance = replace(appearance, phantom_shape="groove")
     return draw, DomainDraw(
         profile=profile,
         light_setup=setup,
@@ -446,15 +454,16 @@ def orbit_offset(T_world_cam: F64, point_world: F64, distance_mm: float, orbit: 
 # --------------------------------------------------------------------------- the thread
 
 
-def floor_height(xy: F64) -> F64:
-    """Height (m) of what a thread lies on at world (x, y) (N, 2) m: the pad (its incisions
-    bridged), else the drape (and the backdrop that continues it, in the same plane)."""
+def floor_height(xy: F64, pad_shape: str = "incisions") -> F64:
+    """Height (m) of what a thread lies on at world (x, y) (N, 2) m: the pad of
+    ``pad_shape`` (its incisions or groove bridged), else the drape (and the backdrop that
+    continues it, in the same plane)."""
     x_mm, y_mm = 1e3 * xy[:, 0], 1e3 * xy[:, 1]
     on_pad = (np.abs(x_mm) <= 0.5 * PAD_SIZE[0]) & (np.abs(y_mm) <= 0.5 * PAD_SIZE[1])
-    # A thread spans the 1.2 mm incisions rather than dipping into them: the highest of the
-    # pad's heights 1.5 mm either side across them (they run along y).
+    # A thread spans the 1.2 mm incisions (and the 2.4 mm groove) rather than dipping into
+    # them: the highest of the pad's heights 1.5 mm either side across them (they run along y).
     n = len(x_mm)
-    around = pad_height(np.concatenate([x_mm, x_mm - 1.5, x_mm + 1.5]), np.tile(y_mm, 3))
+    around = pad_height(np.concatenate([x_mm, x_mm - 1.5, x_mm + 1.5]), np.tile(y_mm, 3), pad_shape)
     top = around.reshape(3, n).max(axis=0)
     h = np.where(on_pad, top, -PAD_THICKNESS)
     out: F64 = 1e-3 * h
@@ -475,14 +484,18 @@ class SutureThread:
     Args:
         draw: The thread's parameters.
         substep_s: Longest simulation step, s.
+        pad_shape: The shape of the pad it rests on (:data:`~.pybullet_scene.PAD_SHAPES`).
     """
 
     DAMPING = 0.8  # velocity kept per substep
     ITERATIONS = 4
     FRICTION = 0.5  # fraction of sideways motion removed on contact
 
-    def __init__(self, draw: ThreadDraw, substep_s: float = 0.025) -> None:
+    def __init__(
+        self, draw: ThreadDraw, substep_s: float = 0.025, pad_shape: str = "incisions"
+    ) -> None:
         self.draw = draw
+        self.pad_shape = pad_shape
         self.substep_s = substep_s
         self.seg = 1e-3 * draw.length_mm / draw.segments
         self.radius = 1e-3 * draw.radius_mm
@@ -514,7 +527,7 @@ class SutureThread:
         x = np.empty((n, 3))
         x[0], x[1] = tail, tail + self.seg * axis
         for i in range(2, n):  # once per replay: a plain loop is fine
-            above = x[i - 1, 2] - (floor_height(x[i - 1 : i, :2])[0] + self.radius)
+            above = x[i - 1, 2] - (floor_height(x[i - 1 : i, :2], self.pad_shape)[0] + self.radius)
             drop = float(np.clip(above, 0.0, 0.7 * self.seg))
             run = np.sqrt(self.seg**2 - drop**2)
             x[i] = x[i - 1] + (run * np.cos(heading[i]), run * np.sin(heading[i]), -drop)
@@ -562,7 +575,7 @@ class SutureThread:
             self.x = self.x + v + acc * dt * dt
             self.x[0] = tail_s
             self.x[1] = tail_s + self.seg * axis_s
-            floor = floor_height(self.x[:, :2]) + self.radius
+            floor = floor_height(self.x[:, :2], self.pad_shape) + self.radius
             for _ in range(self.ITERATIONS):
                 self._lengths(0)
                 self._lengths(1)
@@ -654,7 +667,8 @@ class DomainReplay:
         )
         self.thread = None
         if domain.thread is not None:
-            self.thread = SutureThread(domain.thread)
+            shape = domain.appearance.phantom_shape
+            self.thread = SutureThread(domain.thread, pad_shape=shape)
             self._tail = needle_tail(needle_model)
 
     def frame(self, t: float, T_world_needle: F64) -> None:
@@ -670,6 +684,7 @@ __all__ = [
     "BACKGROUNDS",
     "DEFAULT_DOMAIN",
     "DOMAINS",
+    "GROOVE_SHARE",
     "LIGHT_SETUPS",
     "MARKS_SHARE",
     "MARK_COLOURS",

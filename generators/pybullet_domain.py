@@ -29,10 +29,13 @@ from numpy.typing import NDArray
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import ARMS
 from bopsurg.generators.domain import MARK_COLOURS, Appearance
-from bopsurg.generators.pybullet_backend import write_obj
+from bopsurg.generators.pybullet_backend import upload_part, write_obj
 from bopsurg.generators.pybullet_scene import (
+    MATTE_SPECULAR,
     PAD_THICKNESS,
+    VisualPart,
     cylinder_mesh,
+    pad_mesh,
     paint_marks,
     skin_texture,
 )
@@ -41,6 +44,9 @@ F64 = NDArray[np.float64]
 
 #: Overlap of the rendered thread segments: tube length / segment length.
 SEGMENT_OVERLAP = 1.3
+#: How far below the scene a pad that is not shown is put, m: beyond every camera's far
+#: plane (1 m).
+HIDDEN_DEPTH_M = 100.0
 
 
 def _texture(client: int, image: NDArray[np.uint8], folder: Path, key: str) -> int:
@@ -140,7 +146,7 @@ def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appeara
         if a.phantom_surface == "flat":
             image = flat_texture()
         else:
-            image = skin_texture(a.phantom_texture_seed)
+            image = skin_texture(a.phantom_texture_seed, pad_shape=a.phantom_shape)
         if a.phantom_marks is not None:
             m = a.phantom_marks
             image = paint_marks(
@@ -150,10 +156,22 @@ def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appeara
                 spacing_mm=m.spacing_mm,
                 offset_mm=m.offset_mm,
                 rgb=MARK_COLOURS[m.colour],
+                pad_shape=a.phantom_shape,
             )
         tex = _texture(client, image, Path(tmp), "phantom")
+        phantom = bodies["phantom"]
+        if a.phantom_shape != "incisions":
+            # pybullet cannot swap a body's mesh: show a pad of this shape and move the
+            # scene's own pad (static, never posed again) far below everything
+            pad, uvs = pad_mesh(a.phantom_shape)
+            part = VisualPart("phantom_" + a.phantom_shape, pad, (1.0, 1.0, 1.0, 1.0),
+                              MATTE_SPECULAR, uvs=uvs)  # fmt: skip
+            p.resetBasePositionAndOrientation(
+                phantom, [0.0, 0.0, -HIDDEN_DEPTH_M], [0, 0, 0, 1], physicsClientId=client
+            )
+            phantom = upload_part(client, part, Path(tmp))
     p.changeVisualShape(
-        bodies["phantom"],
+        phantom,
         -1,
         textureUniqueId=tex,
         rgbaColor=list(a.phantom_rgba),

@@ -27,7 +27,9 @@ The scene (world +Z up, tissue top at z = 0 around the origin, see
   (half-elliptic sections, blunt round tip), see :func:`lnd_instrument_models`.
 
 - ``phantom``: an 80 × 60 × 8 mm suturing pad (top at z = 0) with two raised ridges and three
-  incisions, skin-like procedural texture; ``drape``: a 0.5 m square blue-green drape at the
+  incisions, skin-like procedural texture (``--domain wide`` also shows a ``groove`` pad: one
+  crease the pad's length between two raised lips, as the AMBF simulator's phantom has,
+  :data:`PAD_SHAPES`); ``drape``: a 0.5 m square blue-green drape at the
   pad's bottom (z = −8 mm).
 
 Annotated objects (BOP obj_ids, in this order): ``needle`` = 1, and with instruments
@@ -80,6 +82,15 @@ INCISIONS_X = (-20.0, 0.0, 20.0)  # centre lines of the incisions (along y)
 INCISION_HALF_LENGTH = 12.0
 INCISION_HALF_WIDTH = 0.6  # at the top; the flat bottom is 0.1 mm narrower on each side
 INCISION_DEPTH = 3.0
+#: Pad shapes: ``incisions`` (the default above) or ``groove``: a crease of depth
+#: GROOVE_DEPTH and half-width GROOVE_HALF_WIDTH along y at x = 0, the pad's whole length,
+#: between two lips LIP_HEIGHT high, LIP_OFFSET either side; no ridges, no incisions.
+PAD_SHAPES = ("incisions", "groove")
+GROOVE_HALF_WIDTH = 1.2
+GROOVE_DEPTH = 2.0
+LIP_OFFSET = 3.0
+LIP_HALF_WIDTH = 2.5
+LIP_HEIGHT = 1.5
 DRAPE_SIZE = 500.0
 
 # Colours (RGBA in [0, 1]) and specular colours.
@@ -399,13 +410,36 @@ def instrument_part_poses(q: ArrayLike, jaw: float, T_world_base: F64) -> dict[s
 # ------------------------------------------------------------------------------ phantom
 
 
-def pad_height(x: ArrayLike, y: ArrayLike) -> F64:
-    """Height (mm) of the pad's top surface above z = 0 at (x, y) mm (ridges +, incisions −)."""
+def _check_pad_shape(shape: str) -> None:
+    if shape not in PAD_SHAPES:
+        raise ValueError(f"unknown pad shape {shape!r}; expected one of {PAD_SHAPES}")
+
+
+def pad_cuts(shape: str = "incisions") -> tuple[tuple[float, ...], float]:
+    """Where a pad is cut: the x (mm) of each cut's centre line (cuts run along y) and their
+    half-length (mm): the incisions, or the groove (the pad's whole length)."""
+    _check_pad_shape(shape)
+    if shape == "groove":
+        return (0.0,), 0.5 * PAD_SIZE[1]
+    return INCISIONS_X, INCISION_HALF_LENGTH
+
+
+def pad_height(x: ArrayLike, y: ArrayLike, shape: str = "incisions") -> F64:
+    """Height (mm) of the pad's top surface above z = 0 at (x, y) mm (ridges and lips +,
+    incisions and the groove −) for a pad of ``shape`` (:data:`PAD_SHAPES`)."""
+    _check_pad_shape(shape)
     x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
     h = 0.25 * np.sin(x / 6.3 + 0.7) * np.sin(y / 5.1 + 0.3)  # gentle undulation
+
+    def bump(d: F64) -> F64:  # raised cosine of unit height on |d| < 1
+        return np.where(np.abs(d) < 1.0, 0.5 * (1.0 + np.cos(np.pi * np.clip(d, -1, 1))), 0.0)
+
+    if shape == "groove":
+        for xc in (-LIP_OFFSET, LIP_OFFSET):
+            h = h + LIP_HEIGHT * bump((x - xc) / LIP_HALF_WIDTH)
+        return h - GROOVE_DEPTH * bump(x / GROOVE_HALF_WIDTH)
     for yc in RIDGES_Y:
-        d = np.abs(y - yc) / RIDGE_HALF_WIDTH
-        h = h + np.where(d < 1.0, 0.5 * RIDGE_HEIGHT * (1.0 + np.cos(np.pi * d)), 0.0)
+        h = h + RIDGE_HEIGHT * bump((y - yc) / RIDGE_HALF_WIDTH)
     # Incisions: flat-bottomed slots with walls 0.1 mm wide, so nearly vertical.
     along = np.clip((INCISION_HALF_LENGTH - np.abs(y)) / 0.1, 0.0, 1.0)
     for xc in INCISIONS_X:
@@ -414,33 +448,45 @@ def pad_height(x: ArrayLike, y: ArrayLike) -> F64:
     return h
 
 
-def _pad_grid() -> tuple[F64, F64]:
-    """Grid lines (x, y), mm: 1 mm spacing, finer on the ridges, and on every incision edge."""
+def _pad_grid(shape: str = "incisions") -> tuple[F64, F64]:
+    """Grid lines (x, y), mm: 1 mm spacing, finer on the ridges or the lips and the groove,
+    and on every incision edge."""
     hx, hy = 0.5 * PAD_SIZE[0], 0.5 * PAD_SIZE[1]
     xs = [np.arange(-hx, hx + 1e-9, 1.0)]
-    for xc in INCISIONS_X:
-        w = INCISION_HALF_WIDTH
-        xs.append(np.array([xc - w, xc - w + 0.1, xc + w - 0.1, xc + w]))
     ys = [np.arange(-hy, hy + 1e-9, 1.0)]
-    for yc in RIDGES_Y:
-        ys.append(np.arange(yc - RIDGE_HALF_WIDTH, yc + RIDGE_HALF_WIDTH + 1e-9, 0.5))
-    ys.append(np.array([-INCISION_HALF_LENGTH, -INCISION_HALF_LENGTH + 0.1]))
-    ys.append(np.array([INCISION_HALF_LENGTH - 0.1, INCISION_HALF_LENGTH]))
+    if shape == "groove":
+        reach = LIP_OFFSET + LIP_HALF_WIDTH
+        xs.append(np.arange(-reach, reach + 1e-9, 0.25))
+    else:
+        for xc in INCISIONS_X:
+            w = INCISION_HALF_WIDTH
+            xs.append(np.array([xc - w, xc - w + 0.1, xc + w - 0.1, xc + w]))
+        for yc in RIDGES_Y:
+            ys.append(np.arange(yc - RIDGE_HALF_WIDTH, yc + RIDGE_HALF_WIDTH + 1e-9, 0.5))
+        ys.append(np.array([-INCISION_HALF_LENGTH, -INCISION_HALF_LENGTH + 0.1]))
+        ys.append(np.array([INCISION_HALF_LENGTH - 0.1, INCISION_HALF_LENGTH]))
     # Unique to 1 µm (floating-point twins would make degenerate triangles).
     gx = np.unique(np.round(np.concatenate(xs), 6))
     gy = np.unique(np.round(np.concatenate(ys), 6))
     return gx, gy
 
 
-def pad_mesh() -> tuple[ObjectModel, F64]:
+def pad_mesh(shape: str = "incisions") -> tuple[ObjectModel, F64]:
     """The suturing pad: textured top height field plus side walls (no bottom), mm.
+
+    Args:
+        shape: One of :data:`PAD_SHAPES`.
 
     Returns:
         The mesh in the world frame (the pad is static) and its (V, 2) texture coordinates.
+
+    Raises:
+        ValueError: An unknown shape.
     """
-    gx, gy = _pad_grid()
+    _check_pad_shape(shape)
+    gx, gy = _pad_grid(shape)
     xx, yy = np.meshgrid(gx, gy)  # (ny, nx)
-    zz = pad_height(xx, yy)
+    zz = pad_height(xx, yy, shape)
     dzdy, dzdx = np.gradient(zz, gy, gx)
     n = np.stack([-dzdx, -dzdy, np.ones_like(zz)], axis=-1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
@@ -521,7 +567,9 @@ def _frozen(a: NDArray[np.uint8]) -> NDArray[np.uint8]:
 
 
 @functools.lru_cache(maxsize=4)  # a backend per replay: build each texture once per process
-def skin_texture(seed: int = 0, size: tuple[int, int] = (1024, 768)) -> NDArray[np.uint8]:
+def skin_texture(
+    seed: int = 0, size: tuple[int, int] = (1024, 768), pad_shape: str = "incisions"
+) -> NDArray[np.uint8]:
     """Pink-red tissue texture of the pad top, (H, W, 3) uint8 RGB.
 
     Column c maps to texture u = c / W and row r to v = 1 − r / H (OpenGL's convention, which
@@ -531,6 +579,7 @@ def skin_texture(seed: int = 0, size: tuple[int, int] = (1024, 768)) -> NDArray[
     Args:
         seed: Seed of the noise and the vessel pattern.
         size: (width, height) in texels.
+        pad_shape: The pad it covers (:data:`PAD_SHAPES`), whose cuts are painted dark.
     """
     rng = np.random.default_rng(seed)
     w, h = size
@@ -561,10 +610,10 @@ def skin_texture(seed: int = 0, size: tuple[int, int] = (1024, 768)) -> NDArray[
         cv2.polylines(vessels, [np.asarray(pts, np.int32)], False, 1.0, width, cv2.LINE_AA)
     vessels = cv2.GaussianBlur(vessels, (0, 0), 1.2)[..., None].astype(np.float64)
     img = img * (1 - 0.45 * vessels) + 0.45 * vessels * np.array([0.55, 0.12, 0.15])
-    # Incisions: dark red walls and bottoms.
+    # Incisions (or the groove): dark red walls and bottoms.
     x = (np.arange(w) + 0.5) / w * PAD_SIZE[0] - 0.5 * PAD_SIZE[0]
     y = 0.5 * PAD_SIZE[1] - (np.arange(h) + 0.5) / h * PAD_SIZE[1]  # row 0 is the +y edge
-    cut = pad_height(x[None, :], y[:, None]) < -0.5
+    cut = pad_height(x[None, :], y[:, None], pad_shape) < -0.5
     img[cut] = img[cut] * 0.35 + 0.65 * np.array([0.45, 0.10, 0.11])
     return _frozen((np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
 
@@ -581,12 +630,14 @@ def paint_marks(
     spacing_mm: float,
     offset_mm: float,
     rgb: tuple[float, float, float],
+    pad_shape: str = "incisions",
 ) -> NDArray[np.uint8]:
-    """The pad texture ``image`` with suture targets painted on either side of each incision.
+    """The pad texture ``image`` with suture targets painted on either side of each cut (the
+    incisions, or the groove of a ``groove`` pad).
 
     Training pads (and the AMBF simulator's phantom) mark where a stitch enters and leaves:
     pairs of coloured squares or dots ``offset_mm`` either side of the cut, every
-    ``spacing_mm`` along it, over the incision's length and one spacing beyond. They are
+    ``spacing_mm`` along it, over the cut's length and one spacing beyond. They are
     strong, needle-sized distractors for a detector that never saw them.
 
     Args:
@@ -594,12 +645,14 @@ def paint_marks(
             :func:`skin_texture` describes (any size: texels need not be square).
         shape: One of :data:`MARK_SHAPES`.
         size_mm: Side (square, diamond) or diameter (dot), mm.
-        spacing_mm: Distance between neighbouring targets along the incision, mm.
-        offset_mm: Distance of a target's centre from the incision's centre line, mm.
+        spacing_mm: Distance between neighbouring targets along the cut, mm.
+        offset_mm: Distance of a target's centre from the cut's centre line, mm.
         rgb: Colour in [0, 1]; the texture's shading shows through a little.
+        pad_shape: The pad's shape (:data:`PAD_SHAPES`): where its cuts are (:func:`pad_cuts`).
 
     Raises:
-        ValueError: An unknown shape or a size, spacing or offset that is not positive.
+        ValueError: An unknown shape or pad shape, or a size, spacing or offset that is not
+            positive.
     """
     if shape not in MARK_SHAPES:
         raise ValueError(f"unknown mark shape {shape!r}; expected one of {MARK_SHAPES}")
@@ -607,11 +660,10 @@ def paint_marks(
         raise ValueError("mark size, spacing and offset must be positive (mm)")
     h, w = image.shape[:2]
     sx, sy = w / PAD_SIZE[0], h / PAD_SIZE[1]  # texels per mm
-    n = int((INCISION_HALF_LENGTH + spacing_mm) // spacing_mm)
+    cuts, half_length = pad_cuts(pad_shape)
+    n = int((half_length + spacing_mm) // spacing_mm)
     ys = spacing_mm * np.arange(-n, n + 1)
-    centres = np.array(
-        [(xc + side * offset_mm, y) for xc in INCISIONS_X for side in (-1, 1) for y in ys]
-    )
+    centres = np.array([(xc + side * offset_mm, y) for xc in cuts for side in (-1, 1) for y in ys])
     # Unit outline of one target (mm, about its centre), then every target at once.
     r = 0.5 * size_mm
     if shape == "dot":

@@ -1,6 +1,6 @@
 """`generate --domain`: the paper profile is the old draw, the wide one reaches 20-120 mm,
-is recorded and deterministic, paints suture targets on half its phantoms, and its suture
-thread occludes the needle in its masks."""
+is recorded and deterministic, paints suture targets on half its phantoms, shows the groove
+pad on half, and its suture thread occludes the needle in its masks."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from bopsurg.generators.backend import (
 )
 from bopsurg.generators.domain import (
     DOMAIN_REVISIONS,
+    GROOVE_SHARE,
     MARK_COLOURS,
     MARKS_SHARE,
     ORBIT_ELEVATION_DEG,
@@ -39,10 +40,15 @@ from bopsurg.generators.domain import (
 )
 from bopsurg.generators.kinematics import ecm_camera_pose, look_rotation, pose
 from bopsurg.generators.pybullet_scene import (
+    GROOVE_DEPTH,
     INCISION_HALF_LENGTH,
     INCISIONS_X,
+    LIP_HEIGHT,
+    LIP_OFFSET,
     MARK_SHAPES,
     PAD_SIZE,
+    pad_height,
+    pad_mesh,
     paint_marks,
 )
 from bopsurg.generators.replay import GenerateSettings
@@ -64,7 +70,7 @@ def test_paper_profile_is_the_draw_of_before():
 
 
 def test_each_wide_revision_keeps_the_draws_of_the_one_before():
-    """Revision 1's and 2's draws are recorded here (from their code), so what a later
+    """Revision 1's, 2's and 3's draws are recorded here (from their code), so what a later
     revision draws last changes nothing drawn before it."""
     _, domain = draw_domain(np.random.default_rng(4), 0, "wide")
     assert domain is not None
@@ -77,16 +83,25 @@ def test_each_wide_revision_keeps_the_draws_of_the_one_before():
     assert domain.appearance.phantom_marks == MarksDraw(
         "square", "blue", 3.356799586481439, 9.64398400542885, 3.2807099489468046
     )
-    assert GenerateSettings(domain="wide").to_json()["domain_revision"] == 3
+    _, domain = draw_domain(np.random.default_rng(0), 0, "wide")  # revision 3: the orbit
+    assert domain is not None
+    assert domain.orbit == OrbitDraw(
+        53.2893004116449, 189.1275560912613, -68.31292479877597, -0.42493923504632747,
+        11.684635030470009,
+    )  # fmt: skip
+    assert GenerateSettings(domain="wide").to_json()["domain_revision"] == 4
 
 
-def test_wide_draws_targets_and_orbits_on_their_shares_of_replays():
-    marks, orbits = [], []
+def test_wide_draws_targets_orbits_and_grooves_on_their_shares_of_replays():
+    marks, orbits, shapes = [], [], []
     for seed in range(400):
         _, d = draw_domain(np.random.default_rng(seed), seed % 20, "wide")
         assert d is not None
         marks.append(d.appearance.phantom_marks)
         orbits.append(d.orbit)
+        shapes.append(d.appearance.phantom_shape)
+    assert set(shapes) == {"incisions", "groove"}
+    assert abs(shapes.count("groove") / len(shapes) - GROOVE_SHARE) < 0.08
     shown = [m for m in marks if m is not None]
     assert abs(len(shown) / len(marks) - MARKS_SHARE) < 0.08
     assert {m.shape for m in shown} == set(MARK_SHAPES)
@@ -208,6 +223,51 @@ def test_targets_are_painted_in_pairs_beside_every_incision(shape):
     area = {"square": 9.0, "diamond": 9.0, "dot": np.pi * 2.25}[shape]
     painted = (200.0 - out[..., 1]).sum() / 200.0 / 100.0  # coverage summed, mm^2
     assert painted / (n - 1) == pytest.approx(area, rel=0.03)
+
+
+def test_the_groove_pad_has_one_crease_its_whole_length_between_two_lips():
+    y = np.linspace(-0.5 * PAD_SIZE[1], 0.5 * PAD_SIZE[1], 61)
+    groove = pad_height(0.0, y, "groove")  # the crease, end to end
+    assert np.all(groove < -GROOVE_DEPTH + 0.26)  # (the undulation: at most 0.25 mm)
+    lips = pad_height(np.array([[-LIP_OFFSET], [LIP_OFFSET]]), y[None, :], "groove")
+    np.testing.assert_allclose(lips, LIP_HEIGHT, atol=0.26)
+    # and nothing else: no incisions, no ridges
+    for x, yy in [(INCISIONS_X[0], 0.0), (INCISIONS_X[2], 5.0), (10.0, 20.0), (-12.0, -20.0)]:
+        assert abs(float(pad_height(x, yy, "groove"))) <= 0.25
+        assert abs(float(pad_height(x, yy))) > 0.5  # where the incised pad has them
+    # a closed height field like the incised pad's: every vertex used, unit normals
+    model, uvs = pad_mesh("groove")
+    assert np.array_equal(np.unique(model.faces), np.arange(len(model.pts)))
+    np.testing.assert_allclose(np.linalg.norm(model.normals, axis=1), 1.0, atol=1e-9)
+    assert uvs.shape == (len(model.pts), 2)
+    for bad in (lambda: pad_height(0, 0, "moat"), lambda: pad_mesh("moat")):
+        with pytest.raises(ValueError, match="unknown pad shape 'moat'"):
+            bad()
+
+
+def test_the_incised_pad_is_the_one_of_before():
+    """The default pad's mesh, byte for byte (recorded from the code before pad shapes), so
+    the ``paper`` profile's renders cannot change with the groove."""
+    model, uvs = pad_mesh()
+    data = model.pts.tobytes() + model.faces.tobytes() + model.normals.tobytes() + uvs.tobytes()
+    assert hashlib.sha256(data).hexdigest() == (
+        "b9e180fa2bf6f053c66a326bb07a7f3d0fb89241d13929077cef99106e11e24d"
+    )
+
+
+def test_targets_on_a_groove_pad_line_the_groove_end_to_end():
+    grey = np.full((600, 800, 3), 200, np.uint8)  # 10 texels per mm
+    out = paint_marks(
+        grey, shape="square", size_mm=2.0, spacing_mm=8.0, offset_mm=4.0, rgb=(1, 0, 0),
+        pad_shape="groove",
+    )  # fmt: skip
+    for side in (-4.0, 4.0):
+        for y in (-24.0, 0.0, 24.0):
+            assert _texel(out, side, y).tolist() == [255, 0, 0]
+    for x in INCISIONS_X:
+        if x != 0.0:
+            assert _texel(out, x + 4.0, 8.0).tolist() == [200, 200, 200]  # none by the incisions
+    assert _texel(out, 0.0, 8.0).tolist() == [200, 200, 200]  # the groove itself: bare
 
 
 def test_bad_targets_are_refused():
@@ -434,3 +494,47 @@ def test_thread_occludes_the_needle_and_is_not_in_its_visible_mask():
     assert not v1.mask_visib[crossing].any()  # ... which is hidden there
     assert v1.info.visib_fract < v0.info.visib_fract < 1.0 + 1e-9
     assert v1.info.px_count_visib == v0.info.px_count_visib - crossing.sum()
+
+
+def test_a_groove_appearance_shows_the_groove_pad_in_rgb_and_depth():
+    pytest.importorskip("pybullet")
+    from bopsurg.generators.domain import Appearance
+    from bopsurg.generators.pybullet_backend import PyBulletBackend
+
+    K = np.array([[350.8, 0.0, 320.0], [0.0, 350.8, 240.0], [0.0, 0.0, 1.0]])
+    # 60 mm above the pad's centre, looking straight down; the row 11 mm off the centre (the
+    # needle lies within 10 mm of it, the incisions reach 12)
+    T_world_cam = pose(look_rotation([0.0, 0.0, -1.0], up_hint=(0.0, 1.0, 0.0)), [0, 0, 0.06])
+    camera = CameraSpec(K=K, width=640, height=480, T_world_cam=T_world_cam)
+    xs = np.linspace(-0.03, 0.03, 601)
+    world = np.stack([xs, np.full_like(xs, -0.011), np.zeros_like(xs), np.ones_like(xs)])
+    cam = np.linalg.solve(T_world_cam, world)[:3]
+    uv = K @ cam
+    cols, row = np.round(uv[0] / uv[2]).astype(int), round(float(uv[1, 0] / uv[2, 0]))
+
+    def profile(shape: str | None) -> np.ndarray:
+        with PyBulletBackend() as backend:
+            backend.load_scene(SceneSpec())
+            if shape is not None:
+                backend.set_appearance(Appearance(phantom_shape=shape))
+            return backend.render(camera, LightSpec()).depth[row, cols]
+
+    def near(x_mm: float) -> np.ndarray:
+        return np.abs(1e3 * xs - x_mm) < 0.3
+
+    default, appearance, groove = profile(None), profile("incisions"), profile("groove")
+    np.testing.assert_array_equal(appearance, default)  # only the groove swaps the pad
+    # (depth in mm from the camera 60 mm above z = 0: 60 - height)
+    assert groove[near(0.0)].max() > 60.0 + GROOVE_DEPTH - 0.5
+    assert groove[near(LIP_OFFSET)].min() < 60.0 - LIP_HEIGHT + 0.5
+    assert default[near(0.0)].max() > 60.0 + 2.5  # the incised pad's middle incision
+    for x in (INCISIONS_X[0], INCISIONS_X[2]):  # its side incisions, gone on the groove pad
+        assert default[near(x)].max() > 62.0
+        assert groove[near(x)].max() < 60.5
+
+
+def test_a_thread_on_the_groove_pad_spans_the_groove():
+    xy = np.array([[0.0, y] for y in np.linspace(-0.025, 0.025, 11)])
+    bridged = 1e3 * floor_height(xy, "groove")
+    assert np.all(bridged > 0.0)  # on the lips' flanks, not down in the crease
+    assert np.all(1e3 * floor_height(xy + np.array([0.02, 0.0]), "groove") < 0.26)  # flat elsewhere
