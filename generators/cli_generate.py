@@ -126,7 +126,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "background, a specular "
         "needle, grey/black materials on Large-Needle-Driver-like instruments and a simulated "
         "suture thread from the needle's tail (an occluder in the needle's masks), and on "
-        "half the replays suture targets painted beside the incisions; every draw is "
+        "half the replays suture targets painted beside the cuts, and on half a pad with "
+        "one groove its whole length instead of three incisions; every draw is "
         "recorded in bopsurg_scene.json",
     )
     _add_backend_args(p, d)

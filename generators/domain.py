@@ -17,7 +17,9 @@ draw of :func:`~bopsurg.generators.viewpoints.draw_replay` alone, byte for byte 
 - the look (:class:`Appearance`): phantom surface (procedural tissue of one of several seeds,
   or flat plastic) and colour, background, a specular steel needle, grey/black instruments;
   on half the replays suture targets painted beside the incisions (:class:`MarksDraw`:
-  squares, diamonds or dots of one colour, as training pads and the AMBF phantom have);
+  squares, diamonds or dots of one colour, as training pads and the AMBF phantom have); on
+  half the pad's shape (``Appearance.phantom_shape``): a groove its whole length between two
+  lips, as the AMBF phantom has, instead of three incisions;
 - instruments shaped closer to the Large Needle Driver (:func:`profile_scene`; per dataset,
   not drawn, since with ``--annotate-instruments`` they are BOP objects);
 - a suture thread (:class:`ThreadDraw`) hanging from the needle's tail: a thin dark tube,
