@@ -12,6 +12,7 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
+from typing import TextIO
 
 from bopsurg._version import __version__
 from bopsurg.cli.commands import add_commands, selected_command
@@ -55,6 +56,16 @@ def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
     return parser
 
 
+class _CurrentStderr(logging.StreamHandler[TextIO]):
+    """Writes each record to ``sys.stderr`` as it is when the record is emitted: a program
+    that swaps ``sys.stderr`` after calling :func:`main` (pytest's capture, a notebook)
+    keeps getting the log, never a closed stream's error."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr  # (emit runs under the handler's lock)
+        super().emit(record)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the exit code (0 ok, 1 problems found, 2 user error)."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -65,7 +76,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     args = parser.parse_args(argv)
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
-    logging.basicConfig(level=level, format="%(levelname)s: %(message)s", force=True)
+    logging.basicConfig(
+        level=level, format="%(levelname)s: %(message)s", handlers=[_CurrentStderr()], force=True
+    )
     try:
         return int(args.func(args) or 0)
     except BopsurgError as err:

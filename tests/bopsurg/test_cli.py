@@ -211,3 +211,18 @@ def test_run_command_rejects_unknown_options(tmp_path):
         run_command("example", scenes=1)
     assert run_command("example", out=str(tmp_path), scenes=1, images=2) == 0
     assert any(tmp_path.rglob("camera.json"))
+
+
+def test_the_log_follows_stderr_when_a_program_swaps_it(monkeypatch, capsys, tmp_path):
+    """A program that swaps sys.stderr after calling main (pytest's capture, a notebook)
+    still gets the log on the stream of the moment, not on the one of the call."""
+    import io
+    import logging
+    import sys
+
+    assert main(["check", str(tmp_path / "none")]) == 1  # sets the log up; "no dataset"
+    capsys.readouterr()
+    swapped = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", swapped)
+    logging.getLogger("bopsurg.test").warning("after the swap")
+    assert swapped.getvalue() == "WARNING: after the swap\n"

@@ -162,7 +162,8 @@ def test_a_driver_the_cluster_cannot_serve_gets_one_line_and_nothing_else(
         monkeypatch.delenv(var, raising=False)
     expected = "cannot connect to a local Ray" if fail_init else "cannot run this driver's work"
     # only this test's log capture on the root logger: a CLI test run before it in this worker
-    # may have left basicConfig's handler there, on its own (closed) capture stream
+    # may have left the CLI's stderr handler there, which would print the debug log to the
+    # stderr this test checks
     monkeypatch.setattr(logging.getLogger(), "handlers", [caplog.handler])
     with (
         caplog.at_level(logging.DEBUG, logger="bopsurg.executors"),
