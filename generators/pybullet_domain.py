@@ -164,8 +164,8 @@ def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appeara
             # pybullet cannot swap a body's mesh: show a pad of this shape and move the
             # scene's own pad (static, never posed again) far below everything
             pad, uvs = pad_mesh(a.phantom_shape)
-            part = VisualPart("phantom_" + a.phantom_shape, pad, (1.0, 1.0, 1.0, 1.0),
-                              MATTE_SPECULAR, uvs=uvs)  # fmt: skip
+            white = (1.0, 1.0, 1.0, 1.0)
+            part = VisualPart(f"phantom_{a.phantom_shape}", pad, white, MATTE_SPECULAR, uvs=uvs)
             p.resetBasePositionAndOrientation(
                 phantom, [0.0, 0.0, -HIDDEN_DEPTH_M], [0, 0, 0, 1], physicsClientId=client
             )
