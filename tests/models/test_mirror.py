@@ -12,7 +12,7 @@ from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
 from bopsurg.mirror import PlaneReflection, object_reflection  # noqa: E402
 from bopsurg.models.data import load_pose_set  # noqa: E402
 from bopsurg.models.mirror import mirror_batch  # noqa: E402
-from tests.models.plane_depth import write_plane_depth  # noqa: E402
+from tests.models.plane_depth import train_pose_runs, write_plane_depth  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -123,25 +123,11 @@ def test_a_needle_whose_plane_is_off_its_model_origin_mirrors_to_the_same_poses(
 
 
 def test_a_run_with_mirrored_samples_is_configured_recorded_and_deterministic(tmp_path):
-    import yaml
-
-    from bopsurg.cli.main import main
-    from bopsurg.models.checkpoint import load_tensors
-
-    root = write_example_dataset(tmp_path / "d", ExampleSpec(seed=1, scenes=2, images_per_scene=4))
-    write_plane_depth(BopDataset(root.root, root.split))
-    weights = {}
-    for name, mirror in (("a", 0.5), ("b", 0.5), ("off", 0.0)):
-        cfg = tmp_path / f"{name}.yaml"
-        cfg.write_text(
-            f"preset: test\nrecipe: {{epochs: 1, batch_size: 4, val_every: 1, mirror: {mirror}}}\n"
-        )
-        out = tmp_path / name
-        args = ["train", "pose", str(root.root), "--split", root.split, "--out", str(out)]
-        assert main([*args, "--config", str(cfg), "--no-progress", "--threads", "1"]) == 0
-        weights[name] = load_tensors(out / "pose.pt")
-        written = yaml.safe_load((out / "config.yaml").read_text())
-        assert written["recipe"]["mirror"] == mirror
+    base = "{epochs: 1, batch_size: 4, val_every: 1, mirror: %s}"
+    weights, written = train_pose_runs(
+        tmp_path, {"a": base % 0.5, "b": base % 0.5, "off": base % 0.0}
+    )
+    assert [written[n]["mirror"] for n in ("a", "b", "off")] == [0.5, 0.5, 0.0]
     assert all(torch.equal(weights["a"][k], weights["b"][k]) for k in weights["a"])
     assert any(not torch.equal(weights["a"][k], weights["off"][k]) for k in weights["a"])
 

@@ -14,7 +14,7 @@ from bopsurg.bop.dataset import BopDataset  # noqa: E402
 from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
 from bopsurg.models.data import load_pose_set  # noqa: E402
 from bopsurg.models.roll import roll_batch  # noqa: E402
-from tests.models.plane_depth import write_plane_depth  # noqa: E402
+from tests.models.plane_depth import train_pose_runs, write_plane_depth  # noqa: E402
 from tests.models.test_mirror import _reprojection_px  # noqa: E402
 
 
@@ -108,25 +108,11 @@ def test_anisotropic_pixels_turn_as_the_camera_does(batch):
 
 
 def test_a_run_with_turned_samples_is_configured_recorded_and_deterministic(tmp_path):
-    import yaml
-
-    from bopsurg.cli.main import main
-    from bopsurg.models.checkpoint import load_tensors
-
-    root = write_example_dataset(tmp_path / "d", ExampleSpec(seed=1, scenes=2, images_per_scene=4))
-    write_plane_depth(BopDataset(root.root, root.split))
-    weights = {}
-    for name, roll in (("a", 0.5), ("b", 0.5), ("off", 0.0)):
-        cfg = tmp_path / f"{name}.yaml"
-        cfg.write_text(
-            "preset: test\n"
-            f"recipe: {{epochs: 1, batch_size: 4, val_every: 1, roll: {roll}, roll_deg: 90}}\n"
-        )
-        out = tmp_path / name
-        args = ["train", "pose", str(root.root), "--split", root.split, "--out", str(out)]
-        assert main([*args, "--config", str(cfg), "--no-progress", "--threads", "1"]) == 0
-        weights[name] = load_tensors(out / "pose.pt")
-        written = yaml.safe_load((out / "config.yaml").read_text())
-        assert (written["recipe"]["roll"], written["recipe"]["roll_deg"]) == (roll, 90)
+    base = "{epochs: 1, batch_size: 4, val_every: 1, roll: %s, roll_deg: 90}"
+    weights, written = train_pose_runs(
+        tmp_path, {"a": base % 0.5, "b": base % 0.5, "off": base % 0.0}
+    )
+    assert [written[n]["roll"] for n in ("a", "b", "off")] == [0.5, 0.5, 0.0]
+    assert written["a"]["roll_deg"] == 90
     assert all(torch.equal(weights["a"][k], weights["b"][k]) for k in weights["a"])
     assert any(not torch.equal(weights["a"][k], weights["off"][k]) for k in weights["a"])
