@@ -185,6 +185,9 @@ class GdrNetEstimator:
             (:mod:`bopsurg.models.refine.ends`).
         ends_margin: The logit margin the tail must win by; None: the one recorded with the
             classifier (its checkpoint's ``meta.margin``, else 0).
+        det_input_hw: The detector's input (H, W), px, multiples of 32, instead of the one
+            it was trained at (its checkpoint's ``input_hw``): the network is convolutional,
+            and a larger input shows a thin needle with more pixels of wire.
     """
 
     def __init__(
@@ -203,6 +206,7 @@ class GdrNetEstimator:
         recrop: float = RECROP_GROWTH,
         ends: str | Path | None = None,
         ends_margin: float | None = None,
+        det_input_hw: tuple[int, int] | None = None,
     ) -> None:
         if decode not in ("direct", "pnp"):
             raise BopsurgError(f"decode must be 'direct' or 'pnp', got {decode!r}")
@@ -216,6 +220,12 @@ class GdrNetEstimator:
         self.recropped = 0
         self.device = resolve_device(device)
         self.detector = None if detector is None else Detector(detector, self.device)
+        if self.detector is not None and det_input_hw is not None:
+            try:
+                cfg = dataclasses.replace(self.detector.cfg, input_hw=tuple(det_input_hw))
+            except ValueError as err:
+                raise BopsurgError(f"gdrnet: det_size: {err}") from err
+            self.detector.cfg = cfg
         heads = [PoseHead(p, self.device) for p in poses]
         self.heads = {h.obj_id: h for h in heads}
         self.obj_ids = tuple(sorted(self.heads))
@@ -463,11 +473,12 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     on the grown box; default :data:`RECROP_GROWTH`, ``0`` off), ``ends`` (the needle-end
     classifier's checkpoint, or ``none``; default: the shipped one when it exists) and
     ``ends_margin`` (the logit margin a swap needs; default: the one recorded with the
-    classifier, chosen on validation splits).
+    classifier, chosen on validation splits) and ``det_size`` (the detector's input ``HxW``,
+    multiples of 32; default: the one it was trained at).
     """
     known = {"detector", "pose", "device", "conf", "max_per_object", "decode", "no_detector"}
     known |= {"refine", "segmenter", "mask", "min_explained", "zoom", "recrop", "ends"}
-    known |= {"ends_margin"}
+    known |= {"ends_margin", "det_size"}
     unknown = sorted(set(options) - known)
     if unknown:
         raise BopsurgError(f"gdrnet: unknown option(s) {unknown}; known: {sorted(known)}")
@@ -489,6 +500,15 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         zoom = tuple(map(float, str(options["zoom"]).split(","))) if "zoom" in options else ()
     except ValueError as err:
         raise BopsurgError(f"gdrnet: zoom must be numbers, e.g. zoom=0.9,1,1.1 ({err})") from err
+    det_size = None
+    if "det_size" in options:
+        try:
+            h, w = (int(v) for v in str(options["det_size"]).lower().split("x"))
+        except ValueError as err:
+            raise BopsurgError(
+                f"gdrnet: det_size must be HxW in px, e.g. det_size=384x512 ({err})"
+            ) from err
+        det_size = (h, w)
     segmenter = Path(options.get("segmenter") or SHIPPED_SEGMENTER)
     default_refine = "fit" if "segmenter" in options or SHIPPED_SEGMENTER.exists() else "none"
     refine = str(options.get("refine", default_refine))
@@ -522,4 +542,5 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         recrop=recrop,
         ends=ends,
         ends_margin=ends_margin,
+        det_input_hw=det_size,
     )

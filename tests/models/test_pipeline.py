@@ -259,6 +259,27 @@ def test_the_shipped_model_is_small_and_loads():
         assert est.ends.margin > 0
 
 
+@pytest.mark.skipif(not (SHIPPED / "detector.pt").exists(), reason="no shipped model yet")
+def test_the_detector_runs_at_another_input_size_on_request():
+    opts = {"device": "cpu", "refine": "none", "conf": "0.0001"}
+    default = load_estimator("gdrnet", opts)
+    trained = "x".join(str(v) for v in default.detector.cfg.input_hw)
+    same = load_estimator("gdrnet", {**opts, "det_size": trained})
+    big = load_estimator("gdrnet", {**opts, "det_size": "480X640"})
+    assert big.detector.cfg.input_hw == (480, 640)
+    rgb = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    d0, d1, d2 = default.detect(rgb), same.detect(rgb), big.detect(rgb)
+    np.testing.assert_array_equal(d1.bbox, d0.bbox)  # the trained size: the same boxes
+    assert len(d2.bbox) > 0
+    assert d2.bbox.shape != d0.bbox.shape or not np.allclose(d2.bbox, d0.bbox)
+    # boxes in the image's px whatever the input: inside it (to a box's overhang)
+    assert d2.bbox[:, :2].min() > -40
+    assert (d2.bbox[:, :2] + d2.bbox[:, 2:]).max() < 680
+    for bad, needle in (("384", "det_size must be HxW"), ("100x512", "multiples of 32")):
+        with pytest.raises(BopsurgError, match=needle):
+            load_estimator("gdrnet", {**opts, "det_size": bad})
+
+
 @pytest.mark.skipif(not (SHIPPED / "pose.pt").exists(), reason="no shipped model yet")
 def test_the_demo_runs_the_main_job_end_to_end(tmp_path, capsys):
     args = ["demo", "--out", str(tmp_path), "--duration", "4", "--replays", "1", "--device", "cpu"]
