@@ -28,6 +28,7 @@ from bopsurg.models import training
 from bopsurg.models.data import BatchReader, DetectionBatch, DetectionSet, load_detection_set
 from bopsurg.models.detector import DetectorConfig, YoloxDetector, box_iou
 from bopsurg.models.detector.augment import hsv_jitter, random_affine, random_flip
+from bopsurg.models.detector.config import TRAINING_ONLY as DETECTOR_TRAINING_ONLY
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.run_config import LoaderConfig, resolved, write_config
 
@@ -184,7 +185,9 @@ def train_detector(
     model = YoloxDetector(cfg)
     meta = {"classes": list(classes)}
     if recipe.init and state is None:
-        training.init_weights(model, recipe.init, "detector", cfg.to_dict(), meta)
+        training.init_weights(
+            model, recipe.init, "detector", cfg.to_dict(), meta, DETECTOR_TRAINING_ONLY
+        )
     model = model.to(dev)
     export = training.Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
     step = _step_fn(model, recipe, dev, seed)

@@ -15,6 +15,12 @@ from typing import Any, ClassVar
 ARCH_STRIDES: tuple[int, ...] = (8, 16, 32)
 
 
+#: Fields a fine-tuning run (``recipe.init``) may change: the input size, since the network
+#: is convolutional (the same weights run at any multiple of 32; a detector trained small
+#: can be trained on at a larger input, where a thin needle has more pixels).
+TRAINING_ONLY = frozenset({"input_hw"})
+
+
 @dataclass(frozen=True)
 class DetectorConfig:
     """Size of a YOLOX-like detector.

@@ -113,6 +113,19 @@ def test_an_init_of_another_model_is_a_one_line_error(dataset, tmp_path, capsys)
     assert "holds a 'detector' model, expected 'pose'" in capsys.readouterr().err
 
 
+def test_a_detector_fine_tunes_at_another_input_size(dataset, tmp_path):
+    """The input size is no part of the weights: a detector trained small trains on larger."""
+    assert _train(dataset, tmp_path / "a", "--epochs", "1") == 0
+    start = tmp_path / "a" / "detector.pt"
+    larger = tmp_path / "hw.yaml"
+    larger.write_text("detector: {input_hw: [96, 128]}\n")
+    assert _train(dataset, tmp_path / "b", "--epochs", "1", "--init", str(start), "--config",
+                  str(larger)) == 0  # fmt: skip
+    _, info = load_checkpoint(tmp_path / "b" / "detector.pt", "detector")
+    assert info["config"]["input_hw"] == [96, 128]
+    assert info["meta"]["settings"]["recipe"]["init"] == str(start)
+
+
 def test_a_pose_head_fine_tunes_with_other_loss_weights_not_other_sizes(dataset, tmp_path, capsys):
     args = ["train", "pose", str(dataset), "--split", "test,extra", "--preset", "test"]
     args += ["--batch-size", "2", "--epochs", "1", "--no-progress"]
