@@ -74,10 +74,9 @@ def roll_batch(batch: PoseBatch, angle: torch.Tensor) -> PoseBatch:
     centre = pp + torch.einsum("bij,bj->bi", A, batch.ctx[:, 1:].double() - pp)
     lo, hi = [], []
     for axis in (1, 2):  # columns (x): any over rows; rows (y): any over columns
-        hit = mask.any(axis).double()
-        pos = torch.arange(C, dtype=torch.float64)
-        lo.append(torch.where(hit > 0, pos, torch.inf).amin(1))
-        hi.append(torch.where(hit > 0, pos, -torch.inf).amax(1))
+        hit = mask.any(axis)
+        lo.append(torch.where(hit, idx, torch.inf).amin(1))
+        hi.append(torch.where(hit, idx, -torch.inf).amax(1))
     lo_t, hi_t = torch.stack(lo, 1), torch.stack(hi, 1)
     xy = centre + (lo_t - C / 2) / a[:, None]
     wh = (hi_t - lo_t) / a[:, None] + 1.0
