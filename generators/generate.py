@@ -204,18 +204,20 @@ def _check_same_object_model(old: dict[str, Any], new: dict[str, Any], info_path
     )
 
 
-def _check_same_domain_revision(old: dict[str, Any], new: dict[str, Any], info_path: Path) -> None:
-    """Refuse to resume a split whose ``--domain`` profile drew an older revision."""
-    before = old.get("settings") or {}
-    if before.get("domain") != new.get("domain") or "domain" not in new:
-        return  # another profile altogether: the settings comparison says so
-    was, now = before.get("domain_revision", 1), new.get("domain_revision", 1)
-    if was != now:
-        raise InputError(
-            f"this split was drawn by revision {was} of --domain {new['domain']}, this bopsurg "
-            f"draws revision {now}; choose a new --out or --split (nothing was changed)",
-            path=info_path,
-        )
+def _settings_changes(old: Any, new: Any, prefix: str = "") -> list[str]:
+    """What differs between two recorded settings, one ``key: recorded → now`` per field
+    (nested dicts by dotted key), so a refused resume says which option to set back."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        keys = sorted(set(old) | set(new), key=str)
+        return [c for k in keys for c in _settings_changes(old.get(k), new.get(k), f"{prefix}{k}.")]
+    if old == new:
+        return []
+
+    def shown(v: Any) -> str:
+        text = "none" if v is None else json.dumps(v)
+        return text if len(text) <= 40 else text[:39] + "…"
+
+    return [f"{prefix.rstrip('.')}: {shown(old)} recorded, {shown(new)} now"]
 
 
 def _without_model_path(settings: Any) -> Any:
@@ -245,15 +247,18 @@ def _write_dataset_files(
     if info_path.exists():
         old = load_json(info_path)
         _check_same_object_model(old, settings.backend_config, info_path)
-        _check_same_domain_revision(old, info["settings"], info_path)
         # The mesh is the same by checksum; it may have moved (like the bags).
-        same = _without_model_path(old.get("settings")) == _without_model_path(
-            json.loads(json.dumps(info["settings"]))
-        ) and [b["sha256"] for b in old.get("bags", [])] == [b["sha256"] for b in info["bags"]]
-        if not same:
+        changes = _settings_changes(
+            _without_model_path(old.get("settings") or {}),
+            _without_model_path(json.loads(json.dumps(info["settings"]))),
+        )
+        if [b["sha256"] for b in old.get("bags", [])] != [b["sha256"] for b in info["bags"]]:
+            changes.insert(0, "bags: other files (by sha256)")
+        if changes:
+            shown = "; ".join(changes[:3]) + ("; …" if len(changes) > 3 else "")
             raise InputError(
-                "this split was generated with other bags or settings; choose a new --out or "
-                "--split (nothing was changed)",
+                f"this split was generated with other bags or settings ({shown}); choose a "
+                "new --out or --split (nothing was changed)",
                 path=info_path,
             )
     backend = make_backend(settings)

@@ -118,9 +118,25 @@ def test_other_settings_into_the_same_split_are_refused(fake, tmp_path):
     gen.generate_dataset([fake], out, settings=SETTINGS, progress=False)
     other = GenerateSettings(**{**SETTINGS.to_json(), "period": 0.25})
     before = _tree_digest(out)
-    with pytest.raises(InputError, match="other bags or settings"):
+    with pytest.raises(InputError, match=r"other bags or settings \(period: 0.5 recorded, 0.25"):
         gen.generate_dataset([fake], out, settings=other, progress=False)
     assert _tree_digest(out) == before
+
+
+def test_a_refused_resume_names_what_changed():
+    old = {"seed": 1, "camera": {"fov": 40, "far": 1.0}, "domain": None}
+    new = {"seed": 2, "camera": {"fov": 40, "far": 2.0}, "domain": "wide", "domain_revision": 4}
+    assert gen._settings_changes(old, new) == [
+        "camera.far: 1.0 recorded, 2.0 now",
+        'domain: none recorded, "wide" now',
+        "domain_revision: none recorded, 4 now",
+        "seed: 1 recorded, 2 now",
+    ]
+    assert gen._settings_changes(new, new) == []
+    long = gen._settings_changes({"k": "x" * 80}, {"k": "y"})[0]
+    assert long.endswith('"y" now')
+    assert "…" in long
+    assert len(long) < 70
 
 
 def test_missing_bag_is_a_one_line_error(tmp_path):
