@@ -1,4 +1,4 @@
-"""Bench: the needle-end check (tip/tail) of the gdrnet estimator, at several margins.
+r"""Bench: the needle-end check (tip/tail) of the gdrnet estimator, at several margins.
 
 The end check (`bopsurg.models.refine.ends`) turns a needle pose end for end when the patch at
 its tail looks more like a tip than the patch at its tip, by a margin (logits). A swap that

@@ -1,4 +1,4 @@
-"""Bench: the needle refinement, before/after, on the same held-out test split.
+r"""Bench: the needle refinement, before/after, on the same held-out test split.
 
 One pass over the split runs the ``gdrnet`` estimator without refinement (the "before"
 poses: detector + pose head, direct decoding), then the refinement stage on the same image,

@@ -1,4 +1,4 @@
-"""Bench: training throughput of the two ``gdrnet`` models on each device, in one run.
+r"""Bench: training throughput of the two ``gdrnet`` models on each device, in one run.
 
 Runs the real ``bopsurg train detector|pose`` (loader, augmentations, losses, AdamW, EMA,
 validation, export) for a few epochs on every device named, reads the per-epoch wall-clock

@@ -413,10 +413,10 @@ def format_result_row(
 def save_results(
     path: str | Path, est: PoseEstimates, *, time: ArrayLike | float | None = None
 ) -> None:
-    """Write estimates as a BOP19 CSV, as the reference ``inout.save_bop_results`` does.
+    r"""Write estimates as a BOP19 CSV, as the reference ``inout.save_bop_results`` does.
 
     Values are written with Python's ``str`` (shortest round-trip repr), ``R`` row-major and
-    ``t`` in mm space-separated, unknown times as ``-1``, lines joined by ``\\n`` without a final
+    ``t`` in mm space-separated, unknown times as ``-1``, lines joined by ``\n`` without a final
     newline. Written atomically.
 
     Args:

@@ -1,4 +1,4 @@
-"""Inputs of the BOP24 equality test, and the script that asks the reference toolkit for its
+r"""Inputs of the BOP24 equality test, and the script that asks the reference toolkit for its
 numbers on them.
 
 The datasets are the synthetic ones of ``conftest.build_synthetic`` (two objects, one with a
@@ -10,7 +10,7 @@ order decides how tied scores rank).
 Regenerate ``data/bop24_reference.json`` with a checkout of thodan/bop_toolkit and a Python
 environment that runs it (numpy < 2, scipy, pypng, imageio, tqdm)::
 
-    python -m tests.bopsurg.evaluation.bop24_oracle --toolkit /path/to/bop_toolkit \\
+    python -m tests.bopsurg.evaluation.bop24_oracle --toolkit /path/to/bop_toolkit \
         --python /path/to/toolkit-venv/bin/python
 
 The toolkit only evaluates datasets it knows by name; the data are laid out as ``lm``

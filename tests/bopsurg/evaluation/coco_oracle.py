@@ -1,4 +1,4 @@
-"""Inputs of the COCO equality test, and the script that asks the reference toolkit for its
+r"""Inputs of the COCO equality test, and the script that asks the reference toolkit for its
 numbers on them (``scripts/eval_bop22_coco.py``: bbox amodal, bbox modal, segm).
 
 Each case: two scenes of 640 x 480 images with sparse image ids, 1-5 rectangular instances
@@ -12,7 +12,7 @@ The targets list the images scene-interleaved so that the merging order matters.
 Regenerate ``data/coco_reference.json`` with a checkout of thodan/bop_toolkit and a Python
 environment that runs it with pycocotools::
 
-    python -m tests.bopsurg.evaluation.coco_oracle --toolkit /path/to/bop_toolkit \\
+    python -m tests.bopsurg.evaluation.coco_oracle --toolkit /path/to/bop_toolkit \
         --python /path/to/toolkit-venv/bin/python
 """
 
