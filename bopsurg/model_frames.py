@@ -3,12 +3,16 @@
 A pose is only meaningful in the frame of the model it refers to. An estimator trained on one
 needle mesh predicts poses of *that* mesh; a dataset made with another mesh of the same needle
 (the AMBF pipeline's ``Needle.ply``, a user's CAD model) has its GT in that mesh's frame. Both
-meshes are fitted with :func:`bopsurg.needle.fit_needle`; the rigid transform that lays one
-fitted arc onto the other (centres, normals and the arcs' middles coincide, tail-to-tip
-direction kept) maps every predicted pose into the dataset's frame::
+meshes are fitted with :func:`bopsurg.needle.fit_needle`. Their radii may differ a little
+(9.97 against 10.18 mm for the AMBF needle), and an estimator reads depth from the needle's
+size in the image: a needle k = r_target / r_source times the size at (R, t) looks exactly as
+the source needle at (R, t / k) (the scene scaled about the camera centre). So the source
+pose is scaled by k about the camera centre, then the rigid transform that lays the scaled
+source arc onto the target arc (centres, normals and the arcs' middles coincide, tail-to-tip
+direction kept) maps it into the dataset's frame::
 
-    x_target = A x_source + a          (A, a: source arc's middle frame → target's)
-    R_target = R_source Aᵀ,  t_target = t_source − R_target a
+    x_target = A (k x_source) + a      (A, a: scaled source arc's middle frame → target's)
+    R_target = R_source Aᵀ,  t_target = k t_source − R_target a
 
 Models that are not needles, or needles of different radius (beyond a tolerance), cannot be
 matched this way and are refused.
@@ -42,6 +46,8 @@ class FrameMapping:
         obj_id: The object concerned.
         A: (3, 3) rotation.
         a: (3,) translation, mm.
+        scale: k = target radius / source radius; translations scale by it (the image of the
+            target needle at ``k t`` is the source's at ``t``).
         source: The arc fitted to the estimator's model.
         target: The arc fitted to the dataset's model.
         target_name: Where the dataset's model comes from (its file), for messages.
@@ -50,6 +56,7 @@ class FrameMapping:
     obj_id: int
     A: np.ndarray
     a: np.ndarray
+    scale: float
     source: NeedleArc
     target: NeedleArc
     target_name: str
@@ -60,20 +67,21 @@ class FrameMapping:
         return (
             f"obj_id {self.obj_id}: poses mapped from the estimator's needle model into the frame "
             f"of {self.target_name} through the fitted arcs (radius {s.radius:.2f} -> "
-            f"{t.radius:.2f} mm, arc {s.extent_deg:.1f} -> {t.extent_deg:.1f} deg)"
+            f"{t.radius:.2f} mm: depth x {self.scale:.3f}; arc {s.extent_deg:.1f} -> "
+            f"{t.extent_deg:.1f} deg)"
         )
 
     def map_poses(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Poses (R (N, 3, 3), t (N, 3) mm) of the source model → poses of the target model."""
         R_t = np.asarray(R, dtype=np.float64) @ self.A.T
-        t_t = np.asarray(t, dtype=np.float64) - R_t @ self.a
+        t_t = self.scale * np.asarray(t, dtype=np.float64) - R_t @ self.a
         return R_t, t_t
 
     def unmap_poses(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The inverse of :meth:`map_poses`: poses of the target model (e.g. a dataset's GT)
         → poses of the source model (the estimator's), R (N, 3, 3), t (N, 3) mm."""
         R_t = np.asarray(R, dtype=np.float64)
-        return R_t @ self.A, np.asarray(t, dtype=np.float64) + R_t @ self.a
+        return R_t @ self.A, (np.asarray(t, dtype=np.float64) + R_t @ self.a) / self.scale
 
 
 def arc_alignment(
@@ -82,9 +90,11 @@ def arc_alignment(
     *,
     radius_rtol: float = RADIUS_RTOL,
     extent_tol_deg: float = EXTENT_TOL_DEG,
+    scale: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The rigid transform ``(A, a)`` with ``x_target = A x_source + a`` that lays the source
-    arc onto the target arc (centres, normals and arc middles coincide).
+    """The rigid transform ``(A, a)`` with ``x_target = A (scale · x_source) + a`` that lays
+    the source arc, scaled about the model origin, onto the target arc (centres, normals and
+    arc middles coincide).
 
     Raises:
         BopsurgError: The radii differ by more than ``radius_rtol`` or the extents by more
@@ -104,7 +114,7 @@ def arc_alignment(
     Rs, ts = source.middle_frame()
     Rt, tt = target.middle_frame()
     A = Rt @ Rs.T
-    return A, tt - A @ ts
+    return A, tt - A @ (scale * ts)
 
 
 def model_mapping(
@@ -132,12 +142,13 @@ def model_mapping(
     try:
         s = fit_needle(source, name="the estimator's model")
         t = fit_needle(target, name=target_name)
-        A, a = arc_alignment(s, t, radius_rtol=radius_rtol)
+        k = t.radius / s.radius
+        A, a = arc_alignment(s, t, radius_rtol=radius_rtol, scale=k)
     except ModelError as err:
         raise BopsurgError(f"{what}: {err}") from None
     except BopsurgError as err:
         raise BopsurgError(f"{what}: {err}; train the estimator on this model") from None
-    return FrameMapping(int(obj_id), A, a, s, t, target_name)
+    return FrameMapping(int(obj_id), A, a, float(k), s, t, target_name)
 
 
 def map_predictions(pred: PosePredictions, mappings: Mapping[int, FrameMapping]) -> PosePredictions:
