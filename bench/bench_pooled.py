@@ -22,19 +22,23 @@ card) into one test set and compares the two results on it, paired:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import shutil
 import sys
 from pathlib import Path
 
-import pandas as pd
+import numpy as np
 from benchlib import run
 
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.results import PoseEstimates, load_results, save_results
 
 #: Test-target files carried over when every split has them.
 TARGETS = ("test_targets_bop19.json", "test_targets_bop24.json")
+#: The columns of a results file that are pooled.
+POSE_FIELDS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 
 
 def _digest(root: Path) -> str:
@@ -79,16 +83,19 @@ def pool_datasets(roots: list[Path], out: Path, split: str = "test") -> list[dic
 
 
 def pool_results(csvs: list[Path], maps: list[dict[int, int]], out: Path) -> None:
-    """One BOP results CSV of several, their scene ids renumbered by ``maps``."""
+    """One BOP results CSV of several, their scene ids renumbered by ``maps`` (read and written
+    as ``bopsurg`` does: a malformed file gets its one-line error, values round-trip)."""
     parts = []
     for path, m in zip(csvs, maps, strict=True):
-        df = pd.read_csv(path, dtype=str, keep_default_na=False)
-        unknown = set(df.scene_id.astype(int)) - set(m)
+        est = load_results(path)
+        unknown = sorted(set(est.scene_id.tolist()) - set(m))
         if unknown:
-            raise SystemExit(f"{path}: scene_id {sorted(unknown)[0]} is not in its dataset")
-        df["scene_id"] = df.scene_id.astype(int).map(m).astype(str)
-        parts.append(df)
-    pd.concat(parts).to_csv(out, index=False)
+            raise SystemExit(f"{path}: scene_id {unknown[0]} is not in its dataset")
+        lut = np.zeros(max(m) + 1, np.int64)
+        lut[list(m)] = list(m.values())
+        parts.append(dataclasses.replace(est, scene_id=lut[est.scene_id]))
+    cols = {k: np.concatenate([getattr(e, k) for e in parts]) for k in POSE_FIELDS}
+    save_results(out, PoseEstimates.from_arrays(**cols))
 
 
 def main(argv: list[str] | None = None) -> int:
