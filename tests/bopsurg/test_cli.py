@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import io
 import json
+import logging
+import sys
 
 import pytest
 
@@ -126,7 +129,6 @@ def test_help_loads_no_command_module():
     """`bopsurg --help` and `bopsurg eval --help` import neither torch nor the plugins, nor
     even pandas or scipy: building the parser loads only the chosen command's module."""
     import subprocess
-    import sys
 
     code = (
         "import sys\n"
@@ -216,10 +218,6 @@ def test_run_command_rejects_unknown_options(tmp_path):
 def test_the_log_follows_stderr_when_a_program_swaps_it(monkeypatch, capsys, tmp_path):
     """A program that swaps sys.stderr after calling main (pytest's capture, a notebook)
     still gets the log on the stream of the moment, not on the one of the call."""
-    import io
-    import logging
-    import sys
-
     assert main(["check", str(tmp_path / "none")]) == 1  # sets the log up; "no dataset"
     capsys.readouterr()
     swapped = io.StringIO()

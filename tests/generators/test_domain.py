@@ -494,7 +494,7 @@ def test_thread_occludes_the_needle_and_is_not_in_its_visible_mask():
     assert v1.info.px_count_visib == v0.info.px_count_visib - crossing.sum()
 
 
-def test_a_groove_appearance_shows_the_groove_pad_in_rgb_and_depth():
+def test_a_groove_appearance_shows_the_groove_pad_in_depth():
     pytest.importorskip("pybullet")
     from bopsurg.generators.domain import Appearance
     from bopsurg.generators.pybullet_backend import PyBulletBackend
