@@ -16,6 +16,7 @@ from bopsurg.bop.results import load_results
 from bopsurg.errors import BopsurgError
 from bopsurg.estimation import PosePredictions, estimator_models
 from bopsurg.example import ExampleSpec, write_example_dataset
+from bopsurg.geometry import project_pts, transform_pts
 from bopsurg.model_frames import map_predictions, model_mapping
 from bopsurg.needle import NeedleSpec, needle_mesh
 from bopsurg.prediction import predict_dataset
@@ -44,8 +45,8 @@ def test_mapped_poses_put_the_dataset_model_where_the_estimator_saw_its_own():
     assert m.a == pytest.approx(q, abs=1e-4)
     R, t = _poses(5)
     R2, t2 = m.map_poses(R, t)
-    seen = np.einsum("nij,vj->nvi", R, ours.pts) + t[:, None]
-    mapped = np.einsum("nij,vj->nvi", R2, theirs.pts) + t2[:, None]
+    seen = transform_pts(ours.pts, R, t)
+    mapped = transform_pts(theirs.pts, R2, t2)
     assert np.abs(mapped - seen).max() < 1e-4  # mm: the same surface in the camera
     R3, t3 = m.unmap_poses(R2, t2)  # and back: the estimator's poses again
     np.testing.assert_allclose(R3, R, atol=1e-12)
@@ -59,8 +60,7 @@ K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
 
 def _project(R, t, pts):
-    X = np.einsum("nij,vj->nvi", R, pts) + t[:, None]
-    return (X @ K.T)[..., :2] / X[..., 2:]
+    return project_pts(pts, np.broadcast_to(K, (len(R), 3, 3)), R, t)
 
 
 def test_a_smaller_needle_is_mapped_to_the_pose_that_gives_the_same_image():
@@ -79,8 +79,8 @@ def test_a_smaller_needle_is_mapped_to_the_pose_that_gives_the_same_image():
     seen, mapped = _project(R, t, ours.pts), _project(R2, t2, theirs.pts)
     assert np.abs(mapped - seen).max() < 1e-3  # px: the same image, vertex for vertex
     # ... and in the camera the mapped needle is theirs where the camera saw it
-    X = np.einsum("nij,vj->nvi", R, ours.pts) + t[:, None]
-    Y = np.einsum("nij,vj->nvi", R2, theirs.pts) + t2[:, None]
+    X = transform_pts(ours.pts, R, t)
+    Y = transform_pts(theirs.pts, R2, t2)
     assert np.abs(Y - k * X).max() < 1e-4
     R3, t3 = m.unmap_poses(R2, t2)
     np.testing.assert_allclose(R3, R, atol=1e-12)
