@@ -40,6 +40,7 @@ __all__ = [
     "PoseEstimator",
     "PosePredictions",
     "estimator_report",
+    "estimator_uses_depth",
     "load_estimator",
 ]
 
@@ -93,8 +94,9 @@ class PoseEstimator(Protocol):
     """A model-based 6D pose estimator for RGB images (BOP units: mm, px).
 
     Optional: ``object_models`` (obj_id → the :class:`~bopsurg.bop.meshes.ObjectModel` its
-    poses refer to, see :func:`estimator_models`) and ``report()`` (see
-    :func:`estimator_report`).
+    poses refer to, see :func:`estimator_models`), ``report()`` (see
+    :func:`estimator_report`) and ``uses_depth`` (True: :meth:`predict` also takes
+    ``depth=``, see :func:`estimator_uses_depth`).
     """
 
     #: Object ids the estimator can find.
@@ -138,6 +140,14 @@ def estimator_models(estimator: object) -> Mapping[int, ObjectModel] | None:
     ):
         raise BopsurgError("estimator's object_models must map obj_id to an ObjectModel")
     return {int(k): v for k, v in models.items()}
+
+
+def estimator_uses_depth(estimator: object) -> bool:
+    """Whether an estimator takes a depth image (optional attribute ``uses_depth``): then
+    ``bopsurg predict`` calls ``predict(..., depth=D)`` with D the image's (H, W) float depth
+    in mm (0 where there is no reading), or None for an image without one. RGB methods need
+    not say anything."""
+    return getattr(estimator, "uses_depth", False) is True
 
 
 def estimator_report(estimator: object) -> str | None:

@@ -5,6 +5,11 @@ dataset's model of an object differs, the poses are mapped into the dataset's mo
 through the two fitted needle arcs (:mod:`bopsurg.model_frames`), or the run is refused
 before any image when the models cannot be matched.
 
+An estimator that declares ``uses_depth`` also gets each image's depth image in mm (stored
+value × ``depth_scale``; 0 where there is no reading) unless the run is RGB-only. Where the
+poses are mapped into a dataset model k times the size of the estimator's, the depth is
+divided by k: the estimator sees the scene scaled to its own needle, as it sees the image.
+
 Each image is timed from the moment its pixels are in memory to the moment its poses are
 (image decoding excluded, as BOP asks), and the time is written in the CSV's ``time``
 column. Progress is appended to ``RESULTS.partial`` after every image, so a killed run
@@ -24,7 +29,7 @@ from tqdm import tqdm
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.detections import Detections, save_detections
-from bopsurg.bop.images import load_rgb
+from bopsurg.bop.images import load_depth, load_rgb
 from bopsurg.bop.results import (
     HEADER,
     PoseEstimates,
@@ -33,7 +38,12 @@ from bopsurg.bop.results import (
     save_results,
 )
 from bopsurg.errors import BopsurgError, ResultsError
-from bopsurg.estimation import PoseEstimator, PosePredictions, estimator_models
+from bopsurg.estimation import (
+    PoseEstimator,
+    PosePredictions,
+    estimator_models,
+    estimator_uses_depth,
+)
 from bopsurg.model_frames import FrameMapping, map_predictions, model_mapping
 
 log = logging.getLogger(__name__)
@@ -51,6 +61,8 @@ class PredictionRun:
         images: Number of images processed (resumed ones included).
         mean_time: Mean run time per image, s (resumed images included).
         mappings: The objects whose poses were mapped into the dataset's model frame.
+        depth_images: Images whose depth the estimator was given (resumed ones excluded); 0
+            for an RGB-only run.
     """
 
     estimates: PoseEstimates
@@ -58,6 +70,7 @@ class PredictionRun:
     images: int
     mean_time: float
     mappings: tuple[FrameMapping, ...] = ()
+    depth_images: int = 0
 
 
 def dataset_mappings(dataset: BopDataset, estimator: PoseEstimator) -> dict[int, FrameMapping]:
@@ -81,6 +94,35 @@ def dataset_mappings(dataset: BopDataset, estimator: PoseEstimator) -> dict[int,
         if m is not None:
             out[obj_id] = m
     return out
+
+
+def depth_divisor(mappings: Mapping[int, FrameMapping]) -> float:
+    """What to divide a depth image by so that it shows the scene at the estimator's scale:
+    the mappings' common ``scale`` (1 without mappings).
+
+    Raises:
+        BopsurgError: The mapped objects are scaled differently (one depth image cannot show
+            the scene at two scales).
+    """
+    scales = sorted({m.scale for m in mappings.values()})
+    if len(scales) > 1:
+        raise BopsurgError(
+            f"the dataset's models are {scales} times the estimator's: one depth image cannot "
+            "match them all; run RGB-only (bopsurg predict --no-depth)"
+        )
+    return scales[0] if scales else 1.0
+
+
+def _load_depth_mm(
+    dataset: BopDataset, scene_id: int, im_id: int, divisor: float
+) -> np.ndarray | None:
+    """An image's depth in mm divided by ``divisor``, or None when it has none."""
+    scene = dataset.scene(scene_id)
+    scale = scene.camera[im_id].depth_scale
+    path = scene.depth_path(im_id)
+    if scale is None or not path.is_file():
+        return None
+    return load_depth(path).astype(np.float64) * (scale / divisor)
 
 
 def image_targets(dataset: BopDataset, known: Iterable[int]) -> dict[ImageKey, tuple[int, ...]]:
@@ -181,6 +223,7 @@ def predict_dataset(
     detections_out: str | Path | None = None,
     max_images: int | None = None,
     progress: bool = True,
+    depth: bool = True,
 ) -> PredictionRun:
     """Estimate poses in every target image of ``dataset`` and write the results CSV.
 
@@ -194,6 +237,8 @@ def predict_dataset(
         detections_out: Also write the 2D box of every estimate as BOP detections JSON.
         max_images: Stop after this many images (a quick look); None = all.
         progress: Show a progress bar.
+        depth: Give an estimator that uses depth (``uses_depth``) each image's depth image;
+            False: RGB only.
 
     Raises:
         BopsurgError: The estimator returned something that is not a PosePredictions, its
@@ -202,6 +247,9 @@ def predict_dataset(
     mappings = dataset_mappings(dataset, estimator)
     for mapping in mappings.values():
         log.info("%s", mapping.describe())
+    use_depth = depth and estimator_uses_depth(estimator)
+    divisor = depth_divisor(mappings) if use_depth else 1.0
+    depth_images = 0
     out = Path(out)
     partial = out.with_name(out.name + ".partial")
     lines, done = _read_partial(partial)
@@ -225,8 +273,14 @@ def predict_dataset(
             img_boxes = None
             if boxes is not None:
                 img_boxes = boxes.get((scene_id, im_id), Detections.empty())
+            extra = {}
+            if use_depth:
+                extra["depth"] = _load_depth_mm(dataset, scene_id, im_id, divisor)
+                depth_images += extra["depth"] is not None
             t0 = time.perf_counter()
-            pred = estimator.predict(rgb, K, obj_ids=todo[(scene_id, im_id)], boxes=img_boxes)
+            pred = estimator.predict(
+                rgb, K, obj_ids=todo[(scene_id, im_id)], boxes=img_boxes, **extra
+            )
             if not isinstance(pred, PosePredictions):
                 raise BopsurgError(
                     f"estimator returned {type(pred).__name__}, expected PosePredictions"
@@ -251,4 +305,4 @@ def predict_dataset(
         save_detections(detections_out, dets, done)
     partial.unlink()
     mean_time = float(np.mean(list(done.values()))) if done else float("nan")
-    return PredictionRun(est, dets, len(done), mean_time, tuple(mappings.values()))
+    return PredictionRun(est, dets, len(done), mean_time, tuple(mappings.values()), depth_images)

@@ -37,6 +37,12 @@ estimator says which needle model it was trained on and the dataset's model diff
 AMBF pipeline's Needle.ply, your own CAD needle), the poses are mapped into the dataset's
 model frame through the two fitted needle arcs (one line says so); needles of different
 radius or arc, or models that are not needles, are refused.
+
+Depth: an estimator that uses depth images gets each image's (DATASET's depth/ folder, in mm
+through scene_camera's depth_scale) unless --no-depth. gdrnet's refinement then fits the
+needle's arc to the 3D points of its visible mask, which fixes the tilt and the distance that
+the image alone leaves uncertain; --no-depth (or --option depth=none) is the RGB-only method,
+the one the paper evaluates. The run prints which input it used.
 """
 
 EPILOG = """\
@@ -89,6 +95,12 @@ def register(sub: Subparsers) -> None:
         help="also write the 2D box of every estimate (BOP COCO results JSON: bopsurg eval "
         "scores it with --task coco-bbox)",
     )
+    p.add_argument(
+        "--no-depth",
+        action="store_true",
+        help="RGB only: give the estimator no depth images (by default an estimator that uses "
+        "depth, like gdrnet's depth fit, gets each image's depth when the dataset has one)",
+    )
     p.add_argument("--max-images", type=int, default=None, help="stop after N images")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=run)
@@ -98,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     """Execute the subcommand."""
     from bopsurg.bop.dataset import BopDataset
     from bopsurg.bop.detections import load_detections
-    from bopsurg.estimation import estimator_report, load_estimator
+    from bopsurg.estimation import estimator_report, estimator_uses_depth, load_estimator
     from bopsurg.prediction import predict_dataset
 
     if args.max_images is not None and args.max_images < 1:
@@ -122,11 +134,18 @@ def run(args: argparse.Namespace) -> int:
         detections_out=args.detections_out,
         max_images=args.max_images,
         progress=not args.no_progress,
+        depth=not args.no_depth,
     )
     print(
         f"{len(done.estimates)} estimates in {done.images} images, "
         f"{1000 * done.mean_time:.1f} ms per image -> {args.out}"
     )
+    if estimator_uses_depth(estimator):
+        print(
+            "input: RGB only (--no-depth)"
+            if args.no_depth
+            else f"input: RGB-D (depth images of {done.depth_images} images)"
+        )
     report = estimator_report(estimator)
     if report:
         print(f"{args.estimator}: {report}")

@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.images import load_rgb
+from bopsurg.bop.images import load_depth, load_rgb
 from bopsurg.bop.meshes import ObjectModel, load_ply, save_ply
 from bopsurg.bop.results import load_results
 from bopsurg.errors import BopsurgError
@@ -20,6 +20,7 @@ from bopsurg.geometry import project_pts, transform_pts
 from bopsurg.model_frames import map_predictions, model_mapping
 from bopsurg.needle import NeedleSpec, needle_mesh
 from bopsurg.prediction import predict_dataset
+from tests.bopsurg.test_prediction import with_depth
 
 #: The dataset's needle = bopsurg's needle moved by (Q, q): x_dataset = Q x_ours + q.
 Q = Rotation.from_euler("xyz", [180.0, 0.0, 183.0], degrees=True).as_matrix()
@@ -195,3 +196,41 @@ def test_estimator_without_declared_models_is_not_mapped(moved_dataset, tmp_path
     res = load_results(tmp_path / "r.csv")
     g = {(s, i): g for s, i, g in est.by_image.values()}[(int(res.scene_id[0]), int(res.im_id[0]))]
     assert res.R[0] == pytest.approx(g.R @ Q, abs=1e-6)
+
+
+class DepthProbe:
+    """Declares bopsurg's needle, uses depth, and keeps the depth images it was given."""
+
+    obj_ids = (1,)
+    uses_depth = True
+
+    def __init__(self) -> None:
+        self.object_models = {1: needle_mesh()}
+        self.depths: list[np.ndarray | None] = []
+
+    def predict(self, rgb, K, *, obj_ids=None, boxes=None, depth=None):
+        self.depths.append(depth)
+        return PosePredictions.empty()
+
+
+def test_depth_reaches_the_estimator_at_its_own_needle_scale(tmp_path):
+    """The mapping's scaling, for depth: a dataset needle k times ours at (R, t) is seen by
+    the estimator as ours at (R, t / k), so the depth it gets is the dataset's divided by k
+    (a depth fit of our needle then lands on the pose that the mapping scales back)."""
+    ex = write_example_dataset(tmp_path / "d", ExampleSpec(scenes=1, images_per_scene=2))
+    ds = with_depth(BopDataset(ex.root, "test"))
+    k = 0.98
+    small = needle_mesh()
+    save_ply(ds.model_path(1), ObjectModel(k * small.pts, small.faces))
+    ds = BopDataset(ex.root, "test")
+    est = DepthProbe()
+    run = predict_dataset(ds, est, tmp_path / "r.csv", progress=False)
+    assert run.mappings[0].scale == pytest.approx(k, rel=1e-3)
+    assert run.depth_images == len(est.depths) == 2
+    scene = ds.scene(ds.scene_ids[0])
+    for im_id, got in zip(sorted(scene.camera), est.depths, strict=True):
+        stored = (
+            load_depth(scene.depth_path(im_id)).astype(np.float64) * scene.camera[im_id].depth_scale
+        )
+        assert got is not None
+        np.testing.assert_allclose(got, stored / run.mappings[0].scale, rtol=1e-12)

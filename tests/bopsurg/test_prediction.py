@@ -10,6 +10,7 @@ import pytest
 from bopsurg import plugins
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.detections import gt_detections, load_detections, save_detections
+from bopsurg.bop.images import load_depth, load_rgb, save_depth
 from bopsurg.bop.results import load_results
 from bopsurg.cli.main import main
 from bopsurg.errors import ResultsError, ShapeError
@@ -214,3 +215,55 @@ def test_predict_cli_errors_are_one_line(example, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert str(bad) in err
     assert "\n" not in err
+
+
+class DepthEstimator:
+    """Uses depth (``uses_depth``); keeps what each call was given."""
+
+    obj_ids = (1,)
+    uses_depth = True
+
+    def __init__(self) -> None:
+        self.calls: list[dict] = []
+
+    def predict(self, rgb, K, *, obj_ids=None, boxes=None, **kw):
+        self.calls.append(kw)
+        return PosePredictions.empty()
+
+
+def with_depth(ds: BopDataset, seed: int = 0) -> BopDataset:
+    """``ds`` with a random depth image (stored values, uint16) beside every RGB image."""
+    rng = np.random.default_rng(seed)
+    for s in ds.scene_ids:
+        scene = ds.scene(s)
+        for im_id in scene.camera:
+            shape = load_rgb(scene.rgb_path(im_id)).shape[:2]
+            save_depth(scene.depth_path(im_id), rng.integers(0, 3000, shape))
+    return ds
+
+
+def test_an_estimator_that_uses_depth_gets_it_in_mm_unless_rgb_only(tmp_path):
+    ex = write_example_dataset(tmp_path / "d", ExampleSpec(scenes=1, images_per_scene=3))
+    ds = with_depth(BopDataset(ex.root, "test"))
+    est = DepthEstimator()
+    run = predict_dataset(ds, est, tmp_path / "r.csv", progress=False)
+    keys = list(image_targets(ds, est.obj_ids))
+    assert run.depth_images == len(est.calls) == len(keys) == 3
+    for (s, im_id), kw in zip(keys, est.calls, strict=True):
+        scene = ds.scene(s)
+        mm = (
+            load_depth(scene.depth_path(im_id)).astype(np.float64) * scene.camera[im_id].depth_scale
+        )
+        assert mm.std() > 0
+        np.testing.assert_allclose(kw["depth"], mm, rtol=1e-12)
+    # an image without a depth file: the estimator is told so with None
+    ds.scene(keys[0][0]).depth_path(keys[0][1]).unlink()
+    est = DepthEstimator()
+    run = predict_dataset(ds, est, tmp_path / "r2.csv", progress=False)
+    assert est.calls[0] == {"depth": None}
+    assert run.depth_images == 2
+    # RGB only: not even the keyword (an RGB estimator's predict() need not take it)
+    est = DepthEstimator()
+    run = predict_dataset(ds, est, tmp_path / "r3.csv", progress=False, depth=False)
+    assert est.calls == [{}] * 3
+    assert run.depth_images == 0
