@@ -6,8 +6,10 @@ object above ``conf``, crop a square ROI of side 1.5 x the box's longer side aro
 centre (test-time dynamic zoom-in), run the pose head, and decode the pose directly from its
 rotation and SITE outputs (``decode=direct``, the default) or by PnP-RANSAC on its dense
 2D-3D correspondences (``decode=pnp``), then optionally refine the needle's pose against its
-mask predicted at full image resolution (``refine=fit``; :mod:`bopsurg.models.refine`).
-Boxes from another detector can replace ours.
+mask predicted at full image resolution (``refine=fit``; :mod:`bopsurg.models.refine`), then,
+when ``bopsurg predict`` hands it the image's depth, to the 3D points of its visible mask
+(``depth=fit``; :mod:`bopsurg.models.refine.depth_fit`). Boxes from another detector can
+replace ours.
 """
 
 from __future__ import annotations
@@ -50,6 +52,9 @@ SHIPPED = Path(__file__).parent / "weights"
 #: The object the refinement's arc model describes (the needle).
 NEEDLE_OBJ_ID = 1
 REFINE_MODES = ("fit", "none")
+#: What the refinement does with a depth image: ``fit`` the arc to the visible mask's 3D
+#: points (:mod:`bopsurg.models.refine.depth_fit`), or ``none`` (RGB only).
+DEPTH_MODES = ("fit", "none")
 #: The refinement's fit as the estimator runs it by default, set for the shipped pose head.
 #: The fit's prior is the head's error model, and the shipped head's depth is off by less
 #: than the generic 4 mm (median |dz| 1.58 mm on the model card's test split, network only),
@@ -188,6 +193,8 @@ class GdrNetEstimator:
         det_input_hw: The detector's input (H, W), px, multiples of 32, instead of the one
             it was trained at (its checkpoint's ``input_hw``): the network is convolutional,
             and a larger input shows a thin needle with more pixels of wire.
+        depth: With the refinement and a depth image: ``fit`` the needle's arc to the 3D points
+            of its visible mask after the image fit (:data:`DEPTH_MODES`), or ``none``.
     """
 
     def __init__(
@@ -207,7 +214,10 @@ class GdrNetEstimator:
         ends: str | Path | None = None,
         ends_margin: float | None = None,
         det_input_hw: tuple[int, int] | None = None,
+        depth: str = "fit",
     ) -> None:
+        if depth not in DEPTH_MODES:
+            raise BopsurgError(f"gdrnet: depth must be one of {DEPTH_MODES}, got {depth!r}")
         if decode not in ("direct", "pnp"):
             raise BopsurgError(f"decode must be 'direct' or 'pnp', got {decode!r}")
         if not zoom or not all(np.isfinite(z) and z > 0 for z in zoom):
@@ -242,6 +252,10 @@ class GdrNetEstimator:
             if segmenter is None
             else NeedleRefiner.from_checkpoint(segmenter, self.device, fit or REFINE_FIT, mask)
         )
+        #: Whether the refinement fits depth too when it is given (``depth=fit``).
+        self.use_depth = self.refiner is not None and depth == "fit"
+        #: Images that came with a depth image (RGB-D fits).
+        self.depth_images = 0
         #: The needle-end check (needle only), or None.
         self.ends: EndJudge | None = (
             None if ends is None else load_judge(ends, self.device, ends_margin)
@@ -254,6 +268,11 @@ class GdrNetEstimator:
                     f"{a.radius:.2f} mm, arc {np.rad2deg(a.arc_rad):.1f} deg) than the "
                     f"segmenter (radius {b.radius:.2f} mm, arc {np.rad2deg(b.arc_rad):.1f} deg)"
                 )
+
+    @property
+    def uses_depth(self) -> bool:
+        """Whether :meth:`predict` uses a depth image (``bopsurg predict`` passes one)."""
+        return self.use_depth
 
     @torch.inference_mode()
     def detect(self, rgb: np.ndarray) -> Detections:
@@ -282,6 +301,8 @@ class GdrNetEstimator:
                 f"refinement improved {st.refined} needle poses, {st.kept} kept the network's"
                 + (f", {self.recropped} re-cropped to their whole mask" if self.recrop else "")
             )
+        if self.use_depth:
+            lines.append(f"RGB-D fit in {self.depth_images} images")
         if self.ends is not None:
             st_e = self.ends.stats
             lines.append(
@@ -306,8 +327,10 @@ class GdrNetEstimator:
         *,
         obj_ids: tuple[int, ...] | None = None,
         boxes: Detections | None = None,
+        depth: np.ndarray | None = None,
     ) -> PosePredictions:
-        """Poses of the objects in one image (see :class:`bopsurg.estimation.PoseEstimator`)."""
+        """Poses of the objects in one image (see :class:`bopsurg.estimation.PoseEstimator`);
+        ``depth`` (H, W) mm, 0 where there is no reading, is used by the depth fit."""
         wanted = tuple(o for o in (obj_ids or self.obj_ids) if o in self.heads)
         if not wanted:
             return PosePredictions.empty()
@@ -315,6 +338,7 @@ class GdrNetEstimator:
         if len(found) == 0:
             return PosePredictions.empty()
         image = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1)[None].float() / 255
+        self.depth_images += depth is not None and self.use_depth
         Ks = torch.as_tensor(K, dtype=torch.float32, device=self.device)
         R_out, t_out = np.zeros((len(found), 3, 3)), np.zeros((len(found), 3))
         bbox_out = np.array(found.bbox, dtype=np.float64, copy=True)
@@ -326,7 +350,9 @@ class GdrNetEstimator:
             K_b = Ks[None].expand(len(rows), 3, 3)
             R, t = self._head_poses(head, image, K_b, box_xywh)
             if self.refiner is not None and int(obj) == NEEDLE_OBJ_ID:
-                R, t, boxes, grown = self.refine_needles(head, image, K, box_xywh, R, t)
+                R, t, boxes, grown = self.refine_needles(
+                    head, image, K, box_xywh, R, t, depth=depth
+                )
                 bbox_out[rows[grown]] = boxes[grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
             if self.ends is not None and int(obj) == NEEDLE_OBJ_ID:
                 R, _ = self.ends(image, K, R, t)
@@ -344,12 +370,14 @@ class GdrNetEstimator:
         t: np.ndarray,
         refiner: NeedleRefiner | None = None,
         recrop: float | None = None,
+        depth: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The refinement stage of needle ROIs: the segmenter's masks around each box, the ROI
         run again (pose head and segmenter) on a box grown to its visible mask while that
         grows the box by ``recrop`` (:data:`RECROP_GROWTH`, at most :data:`RECROP_PASSES`
         times), then the fit from the pose head's pose; a re-cropped ROI whose fit the fit's
-        out-of-domain guard refuses gets the fit on its first box instead.
+        out-of-domain guard refuses gets the fit on its first box instead. With a ``depth``
+        image (and the depth fit on), the arc is then fitted to its visible mask's 3D points.
 
         Args:
             head: The needle's pose head.
@@ -360,6 +388,7 @@ class GdrNetEstimator:
             refiner: The stage's segmenter and fit (default: the estimator's; a bench may
                 pass one on other evidence).
             recrop: Default: the estimator's; 0 turns re-cropping off.
+            depth: (H, W) depth image, mm (0: no reading), or None.
 
         Returns:
             R (n, 3, 3), t (n, 3) mm, the boxes the poses come from (n, 4) (pixel-centre px)
@@ -387,14 +416,15 @@ class GdrNetEstimator:
             R[redo], t[redo] = self._head_poses(head, image, K_b.expand(len(g), 3, 3), g)
             masks = masks.replaced(redo, refiner.observe(image, K, g, R[redo], t[redo]))
             boxes, todo, grew = np.where(redo[:, None], grown, boxes), redo, grew | redo
-        R, t, fitted = refiner.fit(masks, K, R, t)
+        depth = depth if self.use_depth else None
+        R, t, fitted = refiner.fit(masks, K, R, t, depth)
         # A re-crop whose fit the out-of-domain guard refused (the grown mask holds what the
         # wire cannot explain: an instrument, a groove) is undone: the first box's fit.
         back = grew & ~fitted
         if back.any():
             R0, t0, masks0, boxes0 = first
             refiner.stats.kept -= int(back.sum())  # counted again by the fit below
-            R[back], t[back], _ = refiner.fit(masks0.subset(back), K, R0[back], t0[back])
+            R[back], t[back], _ = refiner.fit(masks0.subset(back), K, R0[back], t0[back], depth)
             boxes[back], grew[back] = boxes0[back], False
         self.recropped += int(grew.sum())
         return R, t, boxes, grew
@@ -473,12 +503,14 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
     on the grown box; default :data:`RECROP_GROWTH`, ``0`` off), ``ends`` (the needle-end
     classifier's checkpoint, or ``none``; default: the shipped one when it exists) and
     ``ends_margin`` (the logit margin a swap needs; default: the one recorded with the
-    classifier, chosen on validation splits) and ``det_size`` (the detector's input ``HxW``,
-    multiples of 32; default: the one it was trained at).
+    classifier, chosen on validation splits), ``det_size`` (the detector's input ``HxW``,
+    multiples of 32; default: the one it was trained at) and ``depth`` (with the refinement:
+    ``fit`` the arc to the visible mask's 3D points when ``bopsurg predict`` passes a depth
+    image, the default; ``none``: RGB only).
     """
     known = {"detector", "pose", "device", "conf", "max_per_object", "decode", "no_detector"}
     known |= {"refine", "segmenter", "mask", "min_explained", "zoom", "recrop", "ends"}
-    known |= {"ends_margin", "det_size"}
+    known |= {"ends_margin", "det_size", "depth"}
     unknown = sorted(set(options) - known)
     if unknown:
         raise BopsurgError(f"gdrnet: unknown option(s) {unknown}; known: {sorted(known)}")
@@ -543,4 +575,5 @@ def create(options: Mapping[str, Any]) -> GdrNetEstimator:
         ends=ends,
         ends_margin=ends_margin,
         det_input_hw=det_size,
+        depth=str(options.get("depth", "fit")),
     )

@@ -38,7 +38,7 @@ from torch import nn
 
 from bopsurg.errors import CheckpointError
 from bopsurg.models.checkpoint import config_path, load_checkpoint, load_weights
-from bopsurg.models.refine.fit import ArcModel
+from bopsurg.models.refine.fit import ArcModel, half_turn
 
 F64 = NDArray[np.float64]
 
@@ -73,13 +73,6 @@ class EndConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EndConfig:
         return cls(**d)
-
-
-def half_turn(arc: ArcModel) -> F64:
-    """(3, 3) the half turn S about the arc's bisector (model frame): ``R S`` is the swapped
-    pose of ``R`` (the arc's centre is the model origin, so ``t`` stays)."""
-    b = np.array([np.cos(arc.arc_rad / 2), np.sin(arc.arc_rad / 2), 0.0])
-    return 2.0 * np.outer(b, b) - np.eye(3)
 
 
 def swapped(R: F64, arc: ArcModel) -> F64:

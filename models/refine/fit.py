@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError
+from bopsurg.models.refine.wire3d import wire_residuals
 
 F64 = NDArray[np.float64]
 
@@ -232,6 +233,21 @@ class FitSettings:
     # It pays where the grid is about an image pixel, as the segmenter's is (the estimator's
     # REFINE_FIT says by how much); 1 uses the grid as it is.
     evidence_upsample: int = 1
+    # RGB-D: with camera points of the wire's visible pixels (``refine_pose``'s ``points``,
+    # from a depth image) a third term measures each point's distance to the wire's surface
+    # (:mod:`.wire3d`), mm, Cauchy at ``depth_scale_mm``, its mean weighted by
+    # ``depth_weight`` against the image terms' (px²-like; 1 mm is about 7 px at 50 mm).
+    # The image alone cannot tell the arc's tilt from its mirror's, the points can: with
+    # points the fit also starts from the tilt mirror.
+    depth_weight: float = 16.0
+    depth_scale_mm: float = 0.5
+    # The network's pose as the prior's centre is right where the network is (our renders)
+    # and wrong where it is lost (another renderer). With points, the fit is also run with
+    # each start's prior on itself (``refine_pose(own_priors=True)``), and that fit is kept
+    # only when it puts clearly more of the points on its wire (within depth_inlier_mm): a
+    # share larger by depth_unheld_share.
+    depth_inlier_mm: float = 0.5
+    depth_unheld_share: float = 0.15
 
 
 @dataclass(frozen=True)
@@ -304,8 +320,11 @@ def _bilinear(grid: F64, xy: F64) -> F64:
 class _Problem:
     """Residuals, costs and Jacobians for a batch of poses against one evidence."""
 
-    def __init__(self, arc: ArcModel, ev: Evidence, K: F64, s: FitSettings) -> None:
+    def __init__(
+        self, arc: ArcModel, ev: Evidence, K: F64, s: FitSettings, points: F64 | None = None
+    ) -> None:
         self.model, self.ev, self.K, self.s = arc.points(s.samples), ev, K, s
+        self.arc, self.points = arc, points
         self.wire_mm = arc.wire_radii(s.samples)  # the wire itself (what explains pixels)
         self.wire = self.wire_mm if s.tube else np.zeros(s.samples)  # what the cost fits
         self.fx, self.fy = K[0, 0], K[1, 1]
@@ -408,6 +427,10 @@ class _Problem:
         rho_s = np.where(use2, rho_s, 0.0)
         cost = rho_r.mean(-1) + s.forward_weight * rho_f.mean(-1)
         cost = cost + s.outline_weight * rho_s.sum(-1) / (2 * m)
+        if self.points is not None:
+            r_d, J_d = wire_residuals(R, t, self.points, self.arc)
+            rho_d, w_d = _cauchy(r_d, s.depth_scale_mm)
+            cost = cost + s.depth_weight * rho_d.mean(-1)
         if not with_jacobian:
             return cost, None, None, None
         # reverse: r = û·(e − c) − rho_c with c the closest point (moving with the pose) and û
@@ -441,7 +464,12 @@ class _Problem:
         r = np.concatenate([d_rev, d_fwd, d_side], 1)
         w_side = s.outline_weight * np.where(use2, w_s, 0.0) / (2 * m)
         w = np.concatenate([w_r / n, s.forward_weight * w_f / m, w_side], 1)
-        return cost, r, w, np.concatenate([J_rev, J_fwd, J_side], 1)
+        J = np.concatenate([J_rev, J_fwd, J_side], 1)
+        if self.points is not None:
+            r = np.concatenate([r, r_d], 1)
+            w = np.concatenate([w, s.depth_weight * w_d / r_d.shape[1]], 1)
+            J = np.concatenate([J, J_d], 1)
+        return cost, r, w, J
 
 
 def _log_so3(R: F64) -> F64:
@@ -458,6 +486,29 @@ def _axis(R: F64) -> F64:
     """Rotation axis of a half-turn."""
     _, V = np.linalg.eigh(0.5 * (R + R.T))
     return V[:, -1]
+
+
+def half_turn(arc: ArcModel) -> F64:
+    """(3, 3) the half turn S about the arc's bisector (model frame): ``R S`` is the swapped
+    pose of ``R`` (the arc's centre is the model origin, so ``t`` stays)."""
+    b = np.array([np.cos(arc.arc_rad / 2), np.sin(arc.arc_rad / 2), 0.0])
+    return 2.0 * np.outer(b, b) - np.eye(3)
+
+
+def same_ends(R: F64, t: F64, R_ref: F64, t_ref: F64, arc: ArcModel) -> F64:
+    """``R`` or its half turn (the same arc, tip and tail swapped; ``t`` stays): the one
+    whose tip lies on the nearer line of sight to the tip of the pose ``(R_ref, t_ref)``.
+
+    A fit of the arc's shape alone (to points, or from a tilt-mirrored start) cannot tell the
+    ends apart; this keeps the reference's (the pose head's: the end check judges it after)."""
+    tip = arc.points(2)[-1]
+
+    def sight(v: F64) -> F64:
+        return v / max(float(np.linalg.norm(v)), 1e-12)
+
+    R_h = R @ half_turn(arc)
+    seen = sight(R_ref @ tip + t_ref)
+    return R_h if sight(R_h @ tip + t) @ seen > sight(R @ tip + t) @ seen else R
 
 
 def mirror_pose(R: F64, t: F64) -> F64:
@@ -516,6 +567,9 @@ def refine_pose(
     evidence: Evidence,
     arc: ArcModel,
     settings: FitSettings | None = None,
+    points: F64 | None = None,
+    starts: tuple[tuple[F64, F64], ...] = (),
+    own_priors: bool = False,
 ) -> FitResult:
     """Fit the arc's pose to ``evidence``, starting from ``(R_init, t_init)`` (and its mirror).
 
@@ -526,6 +580,12 @@ def refine_pose(
         evidence: the ROI's foreground evidence.
         arc: the needle's centre line.
         settings: fit knobs (defaults when None).
+        points: (N, 3) camera points of the wire's visible surface, mm (RGB-D: the depth term
+            of :class:`FitSettings`; with them the fit also starts from the tilt mirror).
+        starts: More starting poses (R (3, 3), t (3,) mm), e.g. a fit to the points alone.
+        own_priors: With ``points``: centre each start's prior on itself instead of on the
+            first start (the network's pose), so that a start far from it is not held back
+            (for when the network's pose disagrees with the points).
 
     Returns:
         The fitted pose when it beats the start's cost (``improved``), else the start.
@@ -537,19 +597,34 @@ def refine_pose(
         np.isfinite(R_init).all() and np.isfinite(t_init).all()
     ):
         return FitResult(R_init, t_init, float("inf"), float("inf"), False)
-    prob = _Problem(arc, evidence, K, s)
-    starts = np.stack([R_init] + ([mirror_pose(R_init, t_init)] if s.mirror_start else []))
-    # x = (ω, δt): R = exp(ω)·R_start, t = t_init + δt; the prior pulls x towards the start's
-    # own (ω = 0 for the first start; the mirror pays its rotation like any other)
-    b = len(starts)
+    if points is not None:
+        points = np.asarray(points, float).reshape(-1, 3)
+    prob = _Problem(arc, evidence, K, s, points)
+    mirror = s.mirror_start or points is not None
+    R_starts = [R_init] + ([mirror_pose(R_init, t_init)] if mirror else [])
+    t_starts = [t_init] * len(R_starts)
+    for R_x, t_x in starts:
+        R_starts.append(np.asarray(R_x, float))
+        t_starts.append(np.asarray(t_x, float))
+    # the data cost hardly tells tip from tail: every start takes the network's ends
+    R_starts = [
+        same_ends(R_x, t_x, R_init, t_init, arc)
+        for R_x, t_x in zip(R_starts, t_starts, strict=True)
+    ]
+    R_s, t_s = np.stack(R_starts), np.stack(t_starts)
+    # x = (ω, δt): R = exp(ω)·R_start, t = t_start + δt. The prior holds the directions the
+    # image does not fix (depth, tilt) near the network's pose: every start pays its distance
+    # from the first (ω = 0, δt = 0 there), unless ``own_priors``
+    b = len(R_s)
     sigma = np.array([np.deg2rad(s.prior_deg)] * 3 + list(s.prior_mm), float)
     sq = np.sqrt(s.prior_weight) / sigma  # prior residual = sq · (x − x_prior)
     x_prior = np.zeros((b, 6))
-    if b > 1:
-        x_prior[1, :3] = -_log_so3(starts[1] @ R_init.T)
+    for i in range(1, 1 if own_priors and points is not None else b):
+        x_prior[i, :3] = -_log_so3(R_s[i] @ R_init.T)
+        x_prior[i, 3:] = t_init - t_s[i]
 
     def total(x: F64) -> tuple[F64, F64, F64, F64]:
-        R, t = _exp_so3(x[:, :3]) @ starts, t_init + x[:, 3:]
+        R, t = _exp_so3(x[:, :3]) @ R_s, t_s + x[:, 3:]
         c, r, w, J = prob.evaluate(R, t, True)
         rp = sq * (x - x_prior)
         return c + 0.5 * (rp**2).sum(-1), r, w, J  # type: ignore[return-value]
@@ -557,8 +632,8 @@ def refine_pose(
     start_cost = float(total(np.zeros((b, 6)))[0][0])
     x, cost = _levenberg_marquardt(total, np.zeros((b, 6)), sq, x_prior, s.iterations, s)
     best = int(np.argmin(cost))
-    R_best = _exp_so3(x[best, :3]) @ starts[best]
-    t_best = t_init + x[best, 3:]
+    R_best = _exp_so3(x[best, :3]) @ R_s[best]
+    t_best = t_s[best] + x[best, 3:]
     ok = bool(np.isfinite(cost[best]) and cost[best] < start_cost)
     ok = ok and bool(np.isfinite(R_best).all() and np.isfinite(t_best).all())
     if not ok:

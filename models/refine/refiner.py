@@ -21,8 +21,17 @@ from bopsurg.errors import BopsurgError
 from bopsurg.geometry import transform_pts
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
 from bopsurg.models.pose.roi import crop
-from bopsurg.models.refine.fit import ArcModel, Evidence, FitSettings, refine_pose
+from bopsurg.models.refine.depth_fit import fit_depth
+from bopsurg.models.refine.fit import (
+    MIN_EVIDENCE,
+    ArcModel,
+    Evidence,
+    FitResult,
+    FitSettings,
+    refine_pose,
+)
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
+from bopsurg.models.refine.wire3d import depth_points, wire_distances
 
 #: Foreground threshold on the segmenter's probability.
 MASK_THRESHOLD = 0.5
@@ -172,6 +181,8 @@ class RefineStats:
 
     refined: int = 0
     kept: int = 0
+    #: RGB-D fits whose pose came from the fit without the network's prior.
+    unheld: int = 0
 
 
 class NeedleRefiner:
@@ -243,10 +254,20 @@ class NeedleRefiner:
         return RoiMasks(np.asarray(prob), c_np - 0.5 * self.grid * step[:, None], step)
 
     def fit(
-        self, masks: RoiMasks, K: np.ndarray, R: np.ndarray, t: np.ndarray
+        self,
+        masks: RoiMasks,
+        K: np.ndarray,
+        R: np.ndarray,
+        t: np.ndarray,
+        depth: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Poses (R (n, 3, 3), t (n, 3) mm) fitted to ``masks`` from the pose head's, and
-        which ROIs changed (n,) bool."""
+        which ROIs changed (n,) bool.
+
+        With a ``depth`` image (H, W) mm (0: no reading), RGB-D: the visible mask's pixels
+        back-projected are the fit's points (its depth term), the arc fitted to those points
+        alone (:func:`.depth_fit.fit_depth`) is one more start, and the fit is also run
+        without the network's prior (:meth:`_unheld`)."""
         R_out, t_out = R.copy(), t.copy()
         changed = np.zeros(len(R), dtype=bool)
         up = max(1, int(self.settings.evidence_upsample))
@@ -260,11 +281,45 @@ class NeedleRefiner:
                 if fg.ndim == 3
                 else Evidence.from_mask(fg, origin, step)
             )
-            res = refine_pose(R[i], t[i], K, ev, self.arc, self.settings)
+            points, starts = None, ()
+            if depth is not None:
+                vis = fg[0] if fg.ndim == 3 else fg
+                rows, cols = np.nonzero(vis)
+                points = depth_points(origin + step * np.stack([cols, rows], 1), depth, K)
+                alone = fit_depth(R[i], t[i], points, self.arc)
+                points = points if len(points) >= MIN_EVIDENCE else None
+                starts = ((alone.R, alone.t),) if alone.used else ()
+            res = refine_pose(R[i], t[i], K, ev, self.arc, self.settings, points, starts)
+            if points is not None:
+                res = self._unheld(res, R[i], t[i], K, ev, points, starts)
             R_out[i], t_out[i], changed[i] = res.R, res.t, res.improved
         self.stats.refined += int(changed.sum())
         self.stats.kept += int((~changed).sum())
         return R_out, t_out, changed
+
+    def _unheld(
+        self,
+        res: FitResult,
+        R: np.ndarray,
+        t: np.ndarray,
+        K: np.ndarray,
+        ev: Evidence,
+        points: np.ndarray,
+        starts: tuple[tuple[np.ndarray, np.ndarray], ...],
+    ) -> FitResult:
+        """The RGB-D fit held by the network's prior (``res``), or the fit without it when
+        that puts clearly more points on its wire (:attr:`FitSettings.depth_unheld_share`)."""
+        s = self.settings
+
+        def on_wire(f: FitResult) -> float:
+            d = wire_distances(f.R[None], f.t[None], points, self.arc)[0]
+            return float((np.abs(d) <= s.depth_inlier_mm).mean())
+
+        free = refine_pose(R, t, K, ev, self.arc, s, points, starts, own_priors=True)
+        if free.improved and on_wire(free) >= on_wire(res) + s.depth_unheld_share:
+            self.stats.unheld += 1
+            return free
+        return res
 
     def __call__(
         self,
