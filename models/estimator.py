@@ -301,8 +301,15 @@ class GdrNetEstimator:
                 f"refinement improved {st.refined} needle poses, {st.kept} kept the network's"
                 + (f", {self.recropped} re-cropped to their whole mask" if self.recrop else "")
             )
-        if self.use_depth:
-            lines.append(f"RGB-D fit in {self.depth_images} images")
+        if self.use_depth and self.depth_images:
+            lines.append(
+                f"RGB-D fit in {self.depth_images} images"
+                + (
+                    f" ({self.refiner.stats.unheld} without the head's prior)"
+                    if self.refiner
+                    else ""
+                )
+            )
         if self.ends is not None:
             st_e = self.ends.stats
             lines.append(
