@@ -315,8 +315,11 @@ class NeedleRefiner:
             d = wire_distances(f.R[None], f.t[None], points, self.arc)[0]
             return float((np.abs(d) <= s.depth_inlier_mm).mean())
 
+        held = on_wire(res)
+        if held + s.depth_unheld_share > 1.0:  # no fit can put that many more on its wire
+            return res
         free = refine_pose(R, t, K, ev, self.arc, s, points, starts, own_priors=True)
-        if free.improved and on_wire(free) >= on_wire(res) + s.depth_unheld_share:
+        if free.improved and on_wire(free) >= held + s.depth_unheld_share:
             self.stats.unheld += 1
             return free
         return res
