@@ -5,19 +5,20 @@ plane tilts (a circle and its mirror image through the line of sight project to 
 same ellipse) and reads the depth from the wire's width, a few px. A depth image (every BOP
 split carries one; a stereo endoscope gives one) settles both: each visible wire pixel,
 back-projected with its depth, is a point on the wire's surface, within ``wire_radius`` of the
-arc's centre line. This module fits the arc to those points:
+arc's centre line (:mod:`.wire3d`). This module fits the arc to those points alone; the
+refinement stage uses the result as one more start of its RGB-D fit (:func:`.fit.refine_pose`
+with ``points``), which also weighs the image:
 
-- residual: a point's distance to the centre line (the nearest point of the arc, its ends
-  included) less the wire's radius, mm; a Cauchy loss, so that pixels of the mask's rim that
-  read the tissue behind the wire, or a thread, cost little;
-- starts: the image fit's pose, its tilt mirror (:func:`.fit.mirror_pose`) and a pose from
-  the points alone (their plane and circle), Gauss-Newton with Levenberg-Marquardt damping in
-  lockstep; the cheapest wins;
+- residual: a point's distance to the centre line less the wire's radius, mm; a Cauchy loss,
+  so that pixels of the mask's rim that read the tissue behind the wire, or a thread, cost
+  little;
+- starts: the given pose (the pose head's), its tilt mirror (:func:`.fit.mirror_pose`) and a
+  pose from the points alone (their plane and circle), Gauss-Newton with Levenberg-Marquardt
+  damping in lockstep; the cheapest wins;
 - the arc maps onto itself under the half turn about its bisector (tip and tail swapped), so
-  the points cannot tell the ends apart: the fit keeps the end the image fit chose (the end
-  check, :mod:`.ends`, runs after it);
-- guard: too few points, or too few of them on the fitted wire, and the image fit's pose is
-  kept.
+  the points cannot tell the ends apart: the fit keeps the given pose's (the end check,
+  :mod:`.ends`, judges them after the stage);
+- guard: too few points, or too few of them on the fitted wire, and the given pose is kept.
 
 Units: mm, px; poses model-to-camera in the estimator's needle frame (:class:`.fit.ArcModel`),
 ``x_cam = R x_model + t``; depth in mm, 0 where there is no reading.
@@ -137,9 +138,10 @@ def fit_depth(
     """The needle's pose fitted to its wire's 3D points (see the module docstring).
 
     Args:
-        R: (3, 3) the image fit's rotation, model-to-camera.
+        R: (3, 3) the starting rotation (the pose head's), model-to-camera.
         t: (3,) its translation, mm.
-        P: (N, 3) camera points on the wire's visible surface, mm (:func:`depth_points`).
+        P: (N, 3) camera points on the wire's visible surface, mm
+            (:func:`.wire3d.depth_points`).
         arc: The needle's centre line.
         settings: Knobs.
 
