@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.dataset import BopDataset, BopScene
 from bopsurg.bop.detections import Detections, save_detections
 from bopsurg.bop.images import load_depth, load_rgb
 from bopsurg.bop.results import (
@@ -113,11 +113,8 @@ def depth_divisor(mappings: Mapping[int, FrameMapping]) -> float:
     return scales[0] if scales else 1.0
 
 
-def _load_depth_mm(
-    dataset: BopDataset, scene_id: int, im_id: int, divisor: float
-) -> np.ndarray | None:
+def _load_depth_mm(scene: BopScene, im_id: int, divisor: float) -> np.ndarray | None:
     """An image's depth in mm divided by ``divisor``, or None when it has none."""
-    scene = dataset.scene(scene_id)
     scale = scene.camera[im_id].depth_scale
     path = scene.depth_path(im_id)
     if scale is None or not path.is_file():
@@ -275,7 +272,7 @@ def predict_dataset(
                 img_boxes = boxes.get((scene_id, im_id), Detections.empty())
             extra = {}
             if use_depth:
-                extra["depth"] = _load_depth_mm(dataset, scene_id, im_id, divisor)
+                extra["depth"] = _load_depth_mm(scene, im_id, divisor)
                 depth_images += extra["depth"] is not None
             t0 = time.perf_counter()
             pred = estimator.predict(

@@ -6,10 +6,10 @@ object above ``conf``, crop a square ROI of side 1.5 x the box's longer side aro
 centre (test-time dynamic zoom-in), run the pose head, and decode the pose directly from its
 rotation and SITE outputs (``decode=direct``, the default) or by PnP-RANSAC on its dense
 2D-3D correspondences (``decode=pnp``), then optionally refine the needle's pose against its
-mask predicted at full image resolution (``refine=fit``; :mod:`bopsurg.models.refine`), then,
-when ``bopsurg predict`` hands it the image's depth, to the 3D points of its visible mask
-(``depth=fit``; :mod:`bopsurg.models.refine.depth_fit`). Boxes from another detector can
-replace ours.
+mask predicted at full image resolution (``refine=fit``; :mod:`bopsurg.models.refine`) and,
+when ``bopsurg predict`` hands it the image's depth, to the 3D points of that mask too
+(``depth=fit``; :mod:`bopsurg.models.refine.wire3d`). Boxes from another detector can replace
+ours.
 """
 
 from __future__ import annotations
@@ -53,7 +53,8 @@ SHIPPED = Path(__file__).parent / "weights"
 NEEDLE_OBJ_ID = 1
 REFINE_MODES = ("fit", "none")
 #: What the refinement does with a depth image: ``fit`` the arc to the visible mask's 3D
-#: points (:mod:`bopsurg.models.refine.depth_fit`), or ``none`` (RGB only).
+#: points together with the image evidence (:mod:`bopsurg.models.refine.wire3d`), or
+#: ``none`` (RGB only).
 DEPTH_MODES = ("fit", "none")
 #: The refinement's fit as the estimator runs it by default, set for the shipped pose head.
 #: The fit's prior is the head's error model, and the shipped head's depth is off by less
@@ -194,7 +195,7 @@ class GdrNetEstimator:
             it was trained at (its checkpoint's ``input_hw``): the network is convolutional,
             and a larger input shows a thin needle with more pixels of wire.
         depth: With the refinement and a depth image: ``fit`` the needle's arc to the 3D points
-            of its visible mask after the image fit (:data:`DEPTH_MODES`), or ``none``.
+            of its visible mask together with the image (:data:`DEPTH_MODES`), or ``none``.
     """
 
     def __init__(
@@ -252,10 +253,9 @@ class GdrNetEstimator:
             if segmenter is None
             else NeedleRefiner.from_checkpoint(segmenter, self.device, fit or REFINE_FIT, mask)
         )
-        #: Whether the refinement fits depth too when it is given (``depth=fit``).
-        self.use_depth = self.refiner is not None and depth == "fit"
-        #: Images that came with a depth image (RGB-D fits).
-        self.depth_images = 0
+        #: Whether :meth:`predict` uses a depth image (``bopsurg predict`` then passes one):
+        #: the refinement is on and ``depth=fit``.
+        self.uses_depth = self.refiner is not None and depth == "fit"
         #: The needle-end check (needle only), or None.
         self.ends: EndJudge | None = (
             None if ends is None else load_judge(ends, self.device, ends_margin)
@@ -268,11 +268,6 @@ class GdrNetEstimator:
                     f"{a.radius:.2f} mm, arc {np.rad2deg(a.arc_rad):.1f} deg) than the "
                     f"segmenter (radius {b.radius:.2f} mm, arc {np.rad2deg(b.arc_rad):.1f} deg)"
                 )
-
-    @property
-    def uses_depth(self) -> bool:
-        """Whether :meth:`predict` uses a depth image (``bopsurg predict`` passes one)."""
-        return self.use_depth
 
     @torch.inference_mode()
     def detect(self, rgb: np.ndarray) -> Detections:
@@ -301,15 +296,8 @@ class GdrNetEstimator:
                 f"refinement improved {st.refined} needle poses, {st.kept} kept the network's"
                 + (f", {self.recropped} re-cropped to their whole mask" if self.recrop else "")
             )
-        if self.use_depth and self.depth_images:
-            lines.append(
-                f"RGB-D fit in {self.depth_images} images"
-                + (
-                    f" ({self.refiner.stats.unheld} without the head's prior)"
-                    if self.refiner
-                    else ""
-                )
-            )
+        if self.refiner is not None and self.refiner.stats.unheld:
+            lines.append(f"{self.refiner.stats.unheld} RGB-D fits without the head's prior")
         if self.ends is not None:
             st_e = self.ends.stats
             lines.append(
@@ -337,7 +325,7 @@ class GdrNetEstimator:
         depth: np.ndarray | None = None,
     ) -> PosePredictions:
         """Poses of the objects in one image (see :class:`bopsurg.estimation.PoseEstimator`);
-        ``depth`` (H, W) mm, 0 where there is no reading, is used by the depth fit."""
+        ``depth`` (H, W) mm, 0 where there is no reading, is used by the RGB-D fit."""
         wanted = tuple(o for o in (obj_ids or self.obj_ids) if o in self.heads)
         if not wanted:
             return PosePredictions.empty()
@@ -345,7 +333,6 @@ class GdrNetEstimator:
         if len(found) == 0:
             return PosePredictions.empty()
         image = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1)[None].float() / 255
-        self.depth_images += depth is not None and self.use_depth
         Ks = torch.as_tensor(K, dtype=torch.float32, device=self.device)
         R_out, t_out = np.zeros((len(found), 3, 3)), np.zeros((len(found), 3))
         bbox_out = np.array(found.bbox, dtype=np.float64, copy=True)
@@ -384,7 +371,7 @@ class GdrNetEstimator:
         grows the box by ``recrop`` (:data:`RECROP_GROWTH`, at most :data:`RECROP_PASSES`
         times), then the fit from the pose head's pose; a re-cropped ROI whose fit the fit's
         out-of-domain guard refuses gets the fit on its first box instead. With a ``depth``
-        image (and the depth fit on), the arc is then fitted to its visible mask's 3D points.
+        image (and ``depth=fit``) the fit also weighs its visible mask's 3D points.
 
         Args:
             head: The needle's pose head.
@@ -423,7 +410,7 @@ class GdrNetEstimator:
             R[redo], t[redo] = self._head_poses(head, image, K_b.expand(len(g), 3, 3), g)
             masks = masks.replaced(redo, refiner.observe(image, K, g, R[redo], t[redo]))
             boxes, todo, grew = np.where(redo[:, None], grown, boxes), redo, grew | redo
-        depth = depth if self.use_depth else None
+        depth = depth if self.uses_depth else None
         R, t, fitted = refiner.fit(masks, K, R, t, depth)
         # A re-crop whose fit the out-of-domain guard refused (the grown mask holds what the
         # wire cannot explain: an instrument, a groove) is undone: the first box's fit.
