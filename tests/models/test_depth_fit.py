@@ -18,13 +18,15 @@ def _deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
 
 
-def wire_surface(R: np.ndarray, t: np.ndarray, rng: np.random.Generator, n: int = 600):
+def wire_surface(
+    R: np.ndarray, t: np.ndarray, rng: np.random.Generator, n: int = 600, arc: ArcModel = ARC
+):
     """Points of the wire's surface that face the camera (what a depth camera sees), mm."""
-    s = rng.uniform(0, ARC.arc_rad, n)
+    s = rng.uniform(0, arc.arc_rad, n)
     phi = rng.uniform(0, 2 * np.pi, n)
     radial = np.stack([np.cos(s), np.sin(s), np.zeros(n)], axis=1)
-    off = ARC.wire_radius * (np.cos(phi)[:, None] * radial + np.sin(phi)[:, None] * [0, 0, 1.0])
-    P = (ARC.radius * radial + off) @ R.T + t
+    off = arc.wire_radius * (np.cos(phi)[:, None] * radial + np.sin(phi)[:, None] * [0, 0, 1.0])
+    P = (arc.radius * radial + off) @ R.T + t
     return P[np.einsum("ni,ni->n", off @ R.T, P) < 0]
 
 

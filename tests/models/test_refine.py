@@ -31,6 +31,7 @@ from bopsurg.models.refine import (  # noqa: E402
 )
 from bopsurg.models.refine.fit import _exp_so3, mirror_pose  # noqa: E402
 from bopsurg.models.refine.refiner import upsampled  # noqa: E402
+from tests.models.test_depth_fit import tilt_mirror, wire_surface  # noqa: E402
 
 K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
 MODEL = needle_mesh()
@@ -564,22 +565,10 @@ def test_a_recrop_onto_what_the_wire_cannot_explain_is_undone(monkeypatch):
 # --- RGB-D: the depth term ----------------------------------------------------------------
 
 
-def _tilt_mirror(R, t):
-    """The pose whose arc lies on the same pixels with its depths reflected through the line
-    of sight (the image's two-fold ambiguity, exact under weak perspective)."""
-    v = t / np.linalg.norm(t)
-    return (np.eye(3) - 2 * np.outer(v, v)) @ R @ np.diag([1.0, 1.0, -1.0])
-
-
 def _depth_image(R, t, n: int = 60_000) -> np.ndarray:
-    """A depth image (480, 640), mm, 0 off the needle: the wire's surface sampled densely,
-    the nearest sample per pixel (what a depth camera sees of it)."""
-    rng = np.random.default_rng(0)
-    s = rng.uniform(0, ARC.arc_rad, n)
-    phi = rng.uniform(0, 2 * np.pi, n)
-    radial = np.stack([np.cos(s), np.sin(s), np.zeros(n)], axis=1)
-    off = ARC.wire_radius * (np.cos(phi)[:, None] * radial + np.sin(phi)[:, None] * [0, 0, 1.0])
-    P = (ARC.radius * radial + off) @ R.T + t
+    """A depth image (480, 640), mm, 0 off the needle: the wire's camera-facing surface
+    sampled densely, the nearest sample per pixel (what a depth camera sees of it)."""
+    P = wire_surface(R, t, np.random.default_rng(0), n, ARC)
     uv = np.round((P @ K.T)[:, :2] / P[:, 2:]).astype(int)
     ok = (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
     depth = np.full((480, 640), np.inf)
@@ -598,7 +587,7 @@ def _visible_points(R, t, depth):
 @pytest.mark.parametrize("view_deg", [30.0, 50.0])
 def test_depth_points_settle_the_tilt_the_image_cannot(view_deg):
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
-    start = _exp_so3(np.array([0.0, 0.0, 0.03])) @ _tilt_mirror(R, t)  # the image fit's twin
+    start = _exp_so3(np.array([0.0, 0.0, 0.03])) @ tilt_mirror(R, t)  # the image fit's twin
     ev = _evidence(R, t)
     rgb = refine_pose(start, t, K, ev, ARC)
     assert metrics.re(rgb.R[None], R[None])[0] > 20.0  # the image keeps the wrong tilt
