@@ -297,7 +297,7 @@ class GdrNetEstimator:
                 + (f", {self.recropped} re-cropped to their whole mask" if self.recrop else "")
             )
         if self.refiner is not None and self.refiner.stats.unheld:
-            lines.append(f"{self.refiner.stats.unheld} RGB-D fits without the head's prior")
+            lines.append(f"RGB-D fits without the head's prior: {self.refiner.stats.unheld}")
         if self.ends is not None:
             st_e = self.ends.stats
             lines.append(
