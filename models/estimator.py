@@ -81,6 +81,11 @@ ZOOM_SCALES = (5 / 6, 1.0, 7 / 6)
 #: The shipped needle segmenter (see MODEL_CARD.md); the refinement is on by default when
 #: this file exists, ``refine=none`` turns it off.
 SHIPPED_SEGMENTER = SHIPPED / "needle_seg.pt"
+#: The end check's logit margin for a needle pose the RGB-D fit took without the pose head's
+#: prior (:attr:`.refiner.Refined.unheld`): the head was lost there, and the tip and tail the
+#: fit kept from it (:func:`.fit.same_ends`) are a guess, so the classifier decides alone.
+UNHELD_ENDS_MARGIN = 0.0
+
 #: The shipped needle-end classifier (:mod:`bopsurg.models.refine.ends`; MODEL_CARD.md): on
 #: by default when this file exists, ``ends=none`` turns it off.
 SHIPPED_ENDS = SHIPPED / "needle_ends.pt"
@@ -297,7 +302,10 @@ class GdrNetEstimator:
                 + (f", {self.recropped} re-cropped to their whole mask" if self.recrop else "")
             )
         if self.refiner is not None and self.refiner.stats.unheld:
-            lines.append(f"RGB-D fits without the head's prior: {self.refiner.stats.unheld}")
+            lines.append(
+                f"RGB-D fits without the head's prior: {self.refiner.stats.unheld}"
+                + (f" (end check at margin {UNHELD_ENDS_MARGIN:g})" if self.ends else "")
+            )
         if self.ends is not None:
             st_e = self.ends.stats
             lines.append(
@@ -343,13 +351,17 @@ class GdrNetEstimator:
             box_xywh = torch.cat([b[:, :2] - 0.5, b[:, 2:]], dim=1)  # pixel-centre convention
             K_b = Ks[None].expand(len(rows), 3, 3)
             R, t = self._head_poses(head, image, K_b, box_xywh)
+            unheld = np.zeros(len(rows), dtype=bool)
             if self.refiner is not None and int(obj) == NEEDLE_OBJ_ID:
-                R, t, boxes, grown = self.refine_needles(
+                R, t, boxes, grown, unheld = self.refine_needles(
                     head, image, K, box_xywh, R, t, depth=depth
                 )
                 bbox_out[rows[grown]] = boxes[grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
             if self.ends is not None and int(obj) == NEEDLE_OBJ_ID:
-                R, _ = self.ends(image, K, R, t)
+                # The margin is the head's say on which end is the tip; where its pose was
+                # judged lost (the RGB-D fit without its prior), it has none.
+                margin = np.where(unheld, UNHELD_ENDS_MARGIN, self.ends.margin)
+                R, _ = self.ends(image, K, R, t, margin)
             R_out[rows], t_out[rows] = R, t
         return PosePredictions(found.obj_id, found.score, R_out, t_out, bbox_out)
 
@@ -385,8 +397,9 @@ class GdrNetEstimator:
             depth: (H, W) depth image, mm (0: no reading), or None.
 
         Returns:
-            R (n, 3, 3), t (n, 3) mm, the boxes the poses come from (n, 4) (pixel-centre px)
-            and which of them grew (n,) bool.
+            R (n, 3, 3), t (n, 3) mm, the boxes the poses come from (n, 4) (pixel-centre px),
+            which of them grew (n,) bool, and which poses the RGB-D fit took without the pose
+            head's prior (n,) bool (:attr:`.refiner.Refined.unheld`).
         """
         refiner = refiner or self.refiner
         if refiner is None:
@@ -411,17 +424,18 @@ class GdrNetEstimator:
             masks = masks.replaced(redo, refiner.observe(image, K, g, R[redo], t[redo]))
             boxes, todo, grew = np.where(redo[:, None], grown, boxes), redo, grew | redo
         depth = depth if self.uses_depth else None
-        R, t, fitted = refiner.fit(masks, K, R, t, depth)
+        R, t, fitted, unheld = refiner.fit(masks, K, R, t, depth)
         # A re-crop whose fit the out-of-domain guard refused (the grown mask holds what the
         # wire cannot explain: an instrument, a groove) is undone: the first box's fit.
         back = grew & ~fitted
         if back.any():
             R0, t0, masks0, boxes0 = first
             refiner.stats.kept -= int(back.sum())  # counted again by the fit below
-            R[back], t[back], _ = refiner.fit(masks0.subset(back), K, R0[back], t0[back], depth)
+            redo = refiner.fit(masks0.subset(back), K, R0[back], t0[back], depth)
+            R[back], t[back], unheld[back] = redo.R, redo.t, redo.unheld
             boxes[back], grew[back] = boxes0[back], False
         self.recropped += int(grew.sum())
-        return R, t, boxes, grew
+        return R, t, boxes, grew, unheld
 
     def _head_poses(
         self, head: PoseHead, image: torch.Tensor, K_b: torch.Tensor, box_xywh: torch.Tensor

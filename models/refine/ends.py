@@ -182,14 +182,16 @@ class EndJudge:
         return out
 
     def __call__(
-        self, image: torch.Tensor, K: F64, R: F64, t: F64
+        self, image: torch.Tensor, K: F64, R: F64, t: F64, margin: float | F64 | None = None
     ) -> tuple[F64, NDArray[np.bool_]]:
         """The rotations (n, 3, 3), tip and tail swapped where the patches say so, and which.
 
-        image (1, 3, H, W) float RGB in [0, 1]; K (3, 3) px; R (n, 3, 3); t (n, 3) mm."""
+        image (1, 3, H, W) float RGB in [0, 1]; K (3, 3) px; R (n, 3, 3); t (n, 3) mm;
+        ``margin``: logits, one or (n,) per pose (default: the judge's)."""
         R = np.asarray(R, float)
         lg = self.logits(image, K, R, t)
-        swap = np.nan_to_num(lg[:, TAIL] - lg[:, TIP], nan=-np.inf) > self.margin
+        m = self.margin if margin is None else np.asarray(margin, float)
+        swap = np.nan_to_num(lg[:, TAIL] - lg[:, TIP], nan=-np.inf) > m
         self.stats.checked += len(R)
         self.stats.swapped += int(swap.sum())
         return np.where(swap[:, None, None], swapped(R, self.arc), R), swap

@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -175,6 +176,19 @@ class RoiMasks:
         return RoiMasks(prob, origin, step)
 
 
+class Refined(NamedTuple):
+    """What :meth:`NeedleRefiner.fit` gives for n ROIs."""
+
+    #: (n, 3, 3) rotations and (n, 3) translations, mm.
+    R: np.ndarray
+    t: np.ndarray
+    #: (n,) bool: the fit changed the pose head's pose.
+    changed: np.ndarray
+    #: (n,) bool: the pose comes from the RGB-D fit without the network's prior (the network
+    #: was judged lost there, so its tip and tail carry no evidence either).
+    unheld: np.ndarray
+
+
 @dataclass
 class RefineStats:
     """How many ROIs the fit improved, and how many kept the network's pose."""
@@ -260,9 +274,9 @@ class NeedleRefiner:
         R: np.ndarray,
         t: np.ndarray,
         depth: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Poses (R (n, 3, 3), t (n, 3) mm) fitted to ``masks`` from the pose head's, and
-        which ROIs changed (n,) bool.
+    ) -> Refined:
+        """Poses (R (n, 3, 3), t (n, 3) mm) fitted to ``masks`` from the pose head's, which
+        ROIs changed and which came from the fit without the network's prior (:class:`Refined`).
 
         With a ``depth`` image (H, W) mm (0: no reading), RGB-D: the visible mask's pixels
         back-projected are the fit's points (its depth term), the arc fitted to those points
@@ -270,6 +284,7 @@ class NeedleRefiner:
         without the network's prior (:meth:`_unheld`)."""
         R_out, t_out = R.copy(), t.copy()
         changed = np.zeros(len(R), dtype=bool)
+        unheld = np.zeros(len(R), dtype=bool)
         up = max(1, int(self.settings.evidence_upsample))
         for i in range(len(R)):  # one small least-squares problem per ROI
             p_i, origin, step = upsampled(masks.prob[i], up, masks.origin[i], masks.step[i])
@@ -291,11 +306,13 @@ class NeedleRefiner:
                 starts = ((alone.R, alone.t),) if alone.used else ()
             res = refine_pose(R[i], t[i], K, ev, self.arc, self.settings, points, starts)
             if points is not None:
-                res = self._unheld(res, R[i], t[i], K, ev, points, starts)
+                free = self._unheld(res, R[i], t[i], K, ev, points, starts)
+                res, unheld[i] = free or res, free is not None
             R_out[i], t_out[i], changed[i] = res.R, res.t, res.improved
         self.stats.refined += int(changed.sum())
         self.stats.kept += int((~changed).sum())
-        return R_out, t_out, changed
+        self.stats.unheld += int(unheld.sum())
+        return Refined(R_out, t_out, changed, unheld)
 
     def _unheld(
         self,
@@ -306,9 +323,9 @@ class NeedleRefiner:
         ev: Evidence,
         points: np.ndarray,
         starts: tuple[tuple[np.ndarray, np.ndarray], ...],
-    ) -> FitResult:
-        """The RGB-D fit held by the network's prior (``res``), or the fit without it when
-        that puts clearly more points on its wire (:attr:`FitSettings.depth_unheld_share`)."""
+    ) -> FitResult | None:
+        """The fit without the network's prior where it puts clearly more points on its wire
+        than the held RGB-D fit ``res`` (:attr:`FitSettings.depth_unheld_share`), else None."""
         s = self.settings
 
         def on_wire(f: FitResult) -> float:
@@ -317,12 +334,11 @@ class NeedleRefiner:
 
         held = on_wire(res)
         if held + s.depth_unheld_share > 1.0:  # no fit can put that many more on its wire
-            return res
+            return None
         free = refine_pose(R, t, K, ev, self.arc, s, points, starts, own_priors=True)
         if free.improved and on_wire(free) >= held + s.depth_unheld_share:
-            self.stats.unheld += 1
             return free
-        return res
+        return None
 
     def __call__(
         self,
@@ -331,9 +347,8 @@ class NeedleRefiner:
         box_xywh: torch.Tensor,
         R: np.ndarray,
         t: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Refined (R (n, 3, 3), t (n, 3) mm) and which ROIs changed (n,) bool:
-        :meth:`observe`, then :meth:`fit`.
+    ) -> Refined:
+        """The refined poses (:class:`Refined`): :meth:`observe`, then :meth:`fit`.
 
         Args:
             image: (1, 3, H, W) float RGB in [0, 1].

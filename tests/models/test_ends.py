@@ -170,6 +170,11 @@ def test_the_judge_turns_only_the_poses_whose_tail_looks_like_the_tip():
     kept, swap = EndJudge(_Bright(cfg), cfg, ARC, margin=10.0)(image, K, poses, t_in)
     assert not swap.any()
     np.testing.assert_array_equal(kept, poses)
+    # a margin per pose (the estimator's 0 where the head was lost): only that pose may turn
+    _, swap = EndJudge(_Bright(cfg), cfg, ARC, margin=10.0)(
+        image, K, poses, t_in, np.array([10.0, 0.0, 0.0])
+    )
+    assert swap.tolist() == [False, True, False]
 
 
 @pytest.fixture(scope="module")
@@ -288,3 +293,29 @@ def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
     save_checkpoint(path, EndNet(cfg).state_dict(), kind="needle_seg", config=cfg.to_dict())
     with pytest.raises(BopsurgError):
         load_judge(path, torch.device("cpu"))
+
+
+@pytest.mark.parametrize("unheld", [False, True])
+def test_the_classifier_decides_alone_where_the_head_was_lost(monkeypatch, unheld):
+    """The end check's margin is the pose head's say on which end is the tip; the estimator
+    drops it (margin 0) for a pose the RGB-D fit took without the head's prior."""
+    from bopsurg.bop.detections import Detections
+    from bopsurg.models.estimator import SHIPPED_SEGMENTER, UNHELD_ENDS_MARGIN
+
+    est = create({"no_detector": "1", "segmenter": str(SHIPPED_SEGMENTER), "device": "cpu"})
+    cfg = EndConfig()
+    est.ends = EndJudge(_Bright(cfg), cfg, ARC, margin=10.0)  # far above what it can say
+    R, t = np.eye(3)[None], np.array([[0.0, 0.0, 70.0]])
+    wrong = swapped(R, ARC)
+
+    def refined(head, image, K_, box, R0, t0, depth=None):
+        return wrong.copy(), t.copy(), box.numpy().astype(float), np.zeros(1, bool), [unheld]
+
+    monkeypatch.setattr(est, "refine_needles", refined)
+    image = _frame_with_a_bright_tip(R[0], t[0])
+    rgb = (image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+    boxes = Detections(np.array([1]), np.array([0.9]), np.array([[250.0, 200.0, 140.0, 80.0]]))
+    out = est.predict(rgb, K, boxes=boxes)
+    assert UNHELD_ENDS_MARGIN == 0.0
+    np.testing.assert_allclose(out.R[0], R[0] if unheld else wrong[0], atol=1e-12)
+    assert est.ends.stats.swapped == int(unheld)
