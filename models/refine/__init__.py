@@ -1,7 +1,8 @@
 """Refinement of the pose head's needle poses against full-resolution image evidence.
 
-:mod:`.fit` (the exact arc fitted by robust Gauss-Newton / LM to foreground pixels, and to
-the wire's 3D points when there is a depth image: :mod:`.wire3d`, :mod:`.depth_fit`),
+:mod:`.fit` (the exact arc fitted by robust Gauss-Newton / LM, :mod:`.lm`, to foreground
+pixels, and to the wire's 3D points when there is a depth image: :mod:`.wire3d`,
+:mod:`.depth_fit`),
 :mod:`.seghead` (a light full-resolution needle segmenter giving that evidence),
 :mod:`.refiner` (the stage the ``gdrnet`` estimator runs: segment, fit, fall back) and
 :mod:`.train_seg` (training the segmenter). Units: mm, px.

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from bopsurg.models.refine.fit import ArcModel, mirror_pose, same_ends
+from bopsurg.models.refine.lm import levenberg_marquardt
 from bopsurg.models.refine.wire3d import wire_distances, wire_residuals
 
 F64 = NDArray[np.float64]
@@ -100,35 +101,21 @@ def pose_from_points(P: F64, arc: ArcModel) -> tuple[F64, F64] | None:
 def _lm(
     R_start: F64, t_start: F64, P: F64, arc: ArcModel, s: DepthFitSettings
 ) -> tuple[F64, F64, F64]:
-    """Damped Gauss-Newton with Cauchy (IRLS) weights from S starts in lockstep: R (S, 3, 3),
-    t (S, 3) mm, robust cost (S,)."""
+    """The Cauchy fit of the wire to the points ``P`` from S starts in lockstep
+    (:func:`.lm.levenberg_marquardt`): R (S, 3, 3), t (S, 3) mm, robust cost (S,)."""
 
-    def evaluate(R: F64, t: F64) -> tuple[F64, F64, F64]:
-        r, J = wire_residuals(R, t, P, arc)
-        return r, J, 0.5 * s.scale**2 * np.log1p((r / s.scale) ** 2).sum(axis=1)
+    def objective(pose: tuple[F64, ...]) -> tuple[F64, F64, F64, F64]:
+        r, J = wire_residuals(pose[0], pose[1], P, arc)
+        cost = 0.5 * s.scale**2 * np.log1p((r / s.scale) ** 2).sum(axis=1)
+        return cost, r, 1.0 / (1.0 + (r / s.scale) ** 2), J
 
-    R, t = R_start.copy(), t_start.copy()
-    r, J, cost = evaluate(R, t)
-    lam = np.full(len(R), s.lambda0)
-    for _ in range(s.iterations):
-        w = 1.0 / (1.0 + (r / s.scale) ** 2)
-        JtW = J.transpose(0, 2, 1) * w[:, None, :]
-        H = JtW @ J
-        g = (JtW @ r[..., None])[..., 0]
-        H_d = H + lam[:, None, None] * (
-            np.eye(6) * np.diagonal(H, axis1=1, axis2=2)[:, None, :] + 1e-9 * np.eye(6)
-        )
-        step = -np.linalg.solve(H_d, g[..., None])[..., 0]
-        R_new = Rotation.from_rotvec(step[:, :3]).as_matrix() @ R
-        t_new = t + step[:, 3:]
-        r_new, J_new, cost_new = evaluate(R_new, t_new)
-        better = cost_new < cost
-        R = np.where(better[:, None, None], R_new, R)
-        t = np.where(better[:, None], t_new, t)
-        r = np.where(better[:, None], r_new, r)
-        J = np.where(better[:, None, None], J_new, J)
-        cost = np.where(better, cost_new, cost)
-        lam = np.where(better, lam * 0.3, lam * 10.0)
+    def moved(pose: tuple[F64, ...], step: F64) -> tuple[F64, ...]:
+        return Rotation.from_rotvec(step[:, :3]).as_matrix() @ pose[0], pose[1] + step[:, 3:]
+
+    # no prior: the floor keeps a step for points that leave a direction free (a line)
+    (R, t), cost = levenberg_marquardt(
+        objective, (R_start, t_start), moved, s.iterations, s.lambda0, floor=1e-9, rtol=None
+    )
     return R, t, cost
 
 

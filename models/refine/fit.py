@@ -28,7 +28,6 @@ the network's pose. Units: mm, px; poses model-to-camera, ``x_cam = R x_model + 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -37,6 +36,7 @@ from numpy.typing import NDArray
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError
+from bopsurg.models.refine.lm import levenberg_marquardt
 from bopsurg.models.refine.wire3d import wire_residuals
 
 F64 = NDArray[np.float64]
@@ -528,38 +528,6 @@ def mirror_pose(R: F64, t: F64) -> F64:
     return _exp_so3(axis / s * np.arctan2(s, c)) @ R
 
 
-_Objective = Callable[[F64], tuple[F64, F64, F64, F64]]
-
-
-def _levenberg_marquardt(
-    total: _Objective, x: F64, sq: F64, x_prior: F64, iterations: int, s: FitSettings
-) -> tuple[F64, F64]:
-    """Damped Gauss-Newton (IRLS weights) on every start in lockstep; (x, cost) per start."""
-    lam = np.full(len(x), s.lambda0)
-    cost, r, w, J = total(x)
-    prior_H = np.diag(sq**2)
-    for _ in range(iterations):
-        JtW = J.transpose(0, 2, 1) * w[:, None, :]
-        H = JtW @ J + prior_H
-        grad = (JtW @ r[..., None])[..., 0] + sq**2 * (x - x_prior)
-        diag = np.einsum("bii->bi", H)
-        A = H + (lam[:, None] * diag)[..., None] * np.eye(6)
-        x_new = x - np.linalg.solve(A, grad[..., None])[..., 0]
-        c_new, r_new, w_new, J_new = total(x_new)
-        better = np.isfinite(c_new) & (c_new < cost)
-        cost_before = cost
-        x = np.where(better[:, None], x_new, x)
-        cost = np.where(better, c_new, cost)
-        r = np.where(better[:, None], r_new, r)
-        w = np.where(better[:, None], w_new, w)
-        J = np.where(better[:, None, None], J_new, J)
-        converged = np.where(better, cost_before - cost < 1e-6 * cost_before, lam >= 1.0)
-        lam = np.where(better, lam * 0.3, lam * 10.0)
-        if converged.all():  # every start stopped moving: the rest would be rejected steps
-            break
-    return x, cost
-
-
 def refine_pose(
     R_init: F64,
     t_init: F64,
@@ -630,7 +598,14 @@ def refine_pose(
         return c + 0.5 * (rp**2).sum(-1), r, w, J  # type: ignore[return-value]
 
     start_cost = float(total(np.zeros((b, 6)))[0][0])
-    x, cost = _levenberg_marquardt(total, np.zeros((b, 6)), sq, x_prior, s.iterations, s)
+
+    def prior(x: F64) -> tuple[F64, F64]:
+        return prior_H, sq**2 * (x - x_prior)
+
+    prior_H = np.diag(sq**2)
+    x, cost = levenberg_marquardt(
+        total, np.zeros((b, 6)), np.add, s.iterations, s.lambda0, prior=prior
+    )
     best = int(np.argmin(cost))
     R_best = _exp_so3(x[best, :3]) @ R_s[best]
     t_best = t_s[best] + x[best, 3:]
