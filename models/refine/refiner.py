@@ -325,18 +325,22 @@ class NeedleRefiner:
         starts: tuple[tuple[np.ndarray, np.ndarray], ...],
     ) -> FitResult | None:
         """The fit without the network's prior where it puts clearly more points on its wire
-        than the held RGB-D fit ``res`` (:attr:`FitSettings.depth_unheld_share`), else None."""
+        than the held RGB-D fit ``res`` (:attr:`FitSettings.depth_unheld_share`; less where
+        the network's pose ``R``, ``t`` is lost: :attr:`FitSettings.depth_lost_share`), else
+        None."""
         s = self.settings
 
-        def on_wire(f: FitResult) -> float:
-            d = wire_distances(f.R[None], f.t[None], points, self.arc)[0]
-            return float((np.abs(d) <= s.depth_inlier_mm).mean())
+        def on_wire(R_: np.ndarray, t_: np.ndarray, tol: float) -> float:
+            d = wire_distances(R_[None], t_[None], points, self.arc)[0]
+            return float((np.abs(d) <= tol).mean())
 
-        held = on_wire(res)
-        if held + s.depth_unheld_share > 1.0:  # no fit can put that many more on its wire
+        lost = on_wire(R, t, s.depth_lost_mm) < s.depth_lost_share
+        lead = s.depth_unheld_share_lost if lost else s.depth_unheld_share
+        held = on_wire(res.R, res.t, s.depth_inlier_mm)
+        if held + lead > 1.0:  # no fit can put that many more on its wire
             return None
         free = refine_pose(R, t, K, ev, self.arc, s, points, starts, own_priors=True)
-        if free.improved and on_wire(free) >= held + s.depth_unheld_share:
+        if free.improved and on_wire(free.R, free.t, s.depth_inlier_mm) >= held + lead:
             return free
         return None
 

@@ -639,6 +639,14 @@ def test_the_rgbd_stage_leaves_a_lost_network_pose_for_the_points():
     assert stage.stats.unheld == 1
     assert metrics.re(R2, R[None])[0] < 5.0  # from 40°
     assert metrics.te(t2, t[None])[0] < 1.0  # from 8 mm (the strong prior holds each start)
+    # a network judged lost (its pose puts too few points near its wire: 8 % here) needs the
+    # smaller lead (depth_unheld_share_lost); with a lead no fit can reach otherwise, only
+    # the network judged lost leaves its pose to the fit without its prior
+    unreachable = dataclasses.replace(held, depth_unheld_share=1.5)
+    for lost_below, taken in ((0.5, True), (0.05, False)):
+        settings = dataclasses.replace(unreachable, depth_lost_share=lost_below)
+        stage = NeedleRefiner(_mask_source(mask), ARC, 192, settings=settings)
+        assert stage.fit(observed, K, lost_R[None], far[None], depth).unheld[0] == taken
 
 
 def test_estimator_depth_option(segmenter):
