@@ -605,11 +605,11 @@ def refine_pose(
         return c + 0.5 * (rp**2).sum(-1), r, w, J  # type: ignore[return-value]
 
     start_cost = float(total(np.zeros((b, 6)))[0][0])
+    prior_H = np.diag(sq**2)
 
     def prior(x: F64) -> tuple[F64, F64]:
         return prior_H, sq**2 * (x - x_prior)
 
-    prior_H = np.diag(sq**2)
     x, cost = levenberg_marquardt(
         total, np.zeros((b, 6)), np.add, s.iterations, s.lambda0, prior=prior
     )

@@ -184,8 +184,8 @@ class Refined(NamedTuple):
     t: np.ndarray
     #: (n,) bool: the fit changed the pose head's pose.
     changed: np.ndarray
-    #: (n,) bool: the pose comes from the RGB-D fit without the network's prior (the network
-    #: was judged lost there, so its tip and tail carry no evidence either).
+    #: (n,) bool: the pose comes from the RGB-D fit without the network's prior (the points
+    #: put the network's pose aside there, so its tip and tail carry no evidence either).
     unheld: np.ndarray
 
 
