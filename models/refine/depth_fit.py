@@ -18,7 +18,8 @@ with ``points``), which also weighs the image:
 - the arc maps onto itself under the half turn about its bisector (tip and tail swapped), so
   the points cannot tell the ends apart: the fit keeps the given pose's (the end check,
   :mod:`.ends`, judges them after the stage);
-- guard: too few points, or too few of them on the fitted wire, and the given pose is kept.
+- guard: too few points, points on one line, or too few of them on the fitted wire, and the
+  given pose is kept.
 
 Units: mm, px; poses model-to-camera in the estimator's needle frame (:class:`.fit.ArcModel`),
 ``x_cam = R x_model + t``; depth in mm, 0 where there is no reading.
@@ -119,6 +120,13 @@ def _lm(
     return R, t, cost
 
 
+def _collinear(P: F64) -> bool:
+    """Whether the points (N, 3) lie on one line (or one point): an arc through them is free
+    to turn about that line. A wire's points never do (its surface has width)."""
+    spread = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+    return bool(spread[1] <= 1e-6 * max(spread[0], 1e-9))
+
+
 def fit_depth(
     R: F64, t: F64, P: F64, arc: ArcModel, settings: DepthFitSettings | None = None
 ) -> DepthFit:
@@ -140,7 +148,7 @@ def fit_depth(
     P = np.asarray(P, float).reshape(-1, 3)
     if len(P) > s.max_points:
         P = P[np.linspace(0, len(P) - 1, s.max_points).round().astype(np.int64)]
-    if len(P) < s.min_points:
+    if len(P) < s.min_points or _collinear(P):
         return DepthFit(R, t, 0.0, len(P), False)
     starts_R, starts_t = [R, mirror_pose(R, t)], [t, t]
     geometric = pose_from_points(P, arc)

@@ -108,6 +108,14 @@ def test_the_guard_keeps_the_pose_without_a_wire_in_the_points():
     np.testing.assert_array_equal(fit.t, t)
     few = wire_surface(R, t, rng)[:5]
     assert not fit_depth(R, t, few, ARC, DepthFitSettings(min_points=12)).used
+    # points on one line (or one point) leave the arc free to turn about it, though an arc
+    # passes through them: here the line touches the start's wire at its middle
+    a = ARC.arc_rad / 2
+    mid = ARC.radius * np.array([np.cos(a), np.sin(a), 0.0])
+    tangent = np.array([-np.sin(a), np.cos(a), 0.0])
+    line = (mid + np.linspace(-3.0, 3.0, 50)[:, None] * tangent) @ R.T + t
+    assert not fit_depth(R, t, line, ARC).used
+    assert not fit_depth(R, t, np.repeat(line[:1], 40, axis=0), ARC).used
 
 
 def test_tip_and_tail_follow_the_start():
