@@ -57,8 +57,16 @@ def wire_distances(R: F64, t: F64, P: F64, arc: ArcModel) -> F64:
     """Distances (S, N), mm, of camera points ``P`` (N, 3) to the wire's surface (the centre
     line's distance less ``wire_radius``; negative inside) at poses ``R`` (S, 3, 3), ``t``
     (S, 3)."""
+    diff, _ = _offsets(R, t, P, arc)
+    return np.linalg.norm(diff, axis=-1) - arc.wire_radius
+
+
+def _offsets(R: F64, t: F64, P: F64, arc: ArcModel) -> tuple[F64, F64]:
+    """Model-frame offsets (S, N, 3) of the points from their nearest centre-line points, and
+    those points (S, N, 3), mm, at each pose."""
     q = np.einsum("sji,snj->sni", R, P[None] - t[:, None])  # R^T (P - t), model frame
-    return np.linalg.norm(q - nearest_arc_points(q, arc), axis=-1) - arc.wire_radius
+    c = nearest_arc_points(q, arc)
+    return q - c, c
 
 
 def wire_residuals(R: F64, t: F64, P: F64, arc: ArcModel) -> tuple[F64, F64]:
@@ -69,9 +77,7 @@ def wire_residuals(R: F64, t: F64, P: F64, arc: ArcModel) -> tuple[F64, F64]:
     A point's residual moves with the centre line's nearest point c (camera frame): by
     ``(u × R c)·ω − u·δt`` with u the unit direction from c to the point (the nearest point's
     arc parameter is stationary, so its own change does not enter)."""
-    q = np.einsum("bji,bnj->bni", R, P[None] - t[:, None])  # R^T (P - t), model frame
-    c = nearest_arc_points(q, arc)
-    diff = q - c
+    diff, c = _offsets(R, t, P, arc)
     dist = np.linalg.norm(diff, axis=-1)
     u = np.einsum("bij,bnj->bni", R, diff / np.maximum(dist, 1e-9)[..., None])
     a = np.einsum("bij,bnj->bni", R, c)
