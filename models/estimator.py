@@ -82,8 +82,9 @@ ZOOM_SCALES = (5 / 6, 1.0, 7 / 6)
 #: this file exists, ``refine=none`` turns it off.
 SHIPPED_SEGMENTER = SHIPPED / "needle_seg.pt"
 #: The end check's logit margin for a needle pose the RGB-D fit took without the pose head's
-#: prior (:attr:`.refiner.Refined.unheld`): the head was lost there, and the tip and tail the
-#: fit kept from it (:func:`.fit.same_ends`) are a guess, so the classifier decides alone.
+#: prior (:attr:`.refiner.Refined.unheld`): the points put the head's pose aside there, and
+#: the tip and tail the fit kept from it (:func:`.fit.same_ends`) are a guess, so the
+#: classifier decides alone.
 UNHELD_ENDS_MARGIN = 0.0
 
 #: The shipped needle-end classifier (:mod:`bopsurg.models.refine.ends`; MODEL_CARD.md): on
@@ -353,13 +354,13 @@ class GdrNetEstimator:
             R, t = self._head_poses(head, image, K_b, box_xywh)
             unheld = np.zeros(len(rows), dtype=bool)
             if self.refiner is not None and int(obj) == NEEDLE_OBJ_ID:
-                R, t, boxes, grown, unheld = self.refine_needles(
+                R, t, fit_boxes, grown, unheld = self.refine_needles(
                     head, image, K, box_xywh, R, t, depth=depth
                 )
-                bbox_out[rows[grown]] = boxes[grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
+                bbox_out[rows[grown]] = fit_boxes[grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
             if self.ends is not None and int(obj) == NEEDLE_OBJ_ID:
-                # The margin is the head's say on which end is the tip; where its pose was
-                # judged lost (the RGB-D fit without its prior), it has none.
+                # The margin is the head's say on which end is the tip; where the points put
+                # its pose aside (the RGB-D fit without its prior was kept), it has none.
                 margin = np.where(unheld, UNHELD_ENDS_MARGIN, self.ends.margin)
                 R, _ = self.ends(image, K, R, t, margin)
             R_out[rows], t_out[rows] = R, t
@@ -377,7 +378,7 @@ class GdrNetEstimator:
         refiner: NeedleRefiner | None = None,
         recrop: float | None = None,
         depth: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The refinement stage of needle ROIs: the segmenter's masks around each box, the ROI
         run again (pose head and segmenter) on a box grown to its visible mask while that
         grows the box by ``recrop`` (:data:`RECROP_GROWTH`, at most :data:`RECROP_PASSES`
