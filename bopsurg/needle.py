@@ -210,12 +210,14 @@ def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(normal, u)
 
 
-def _fit_circle(x: np.ndarray, y: np.ndarray, iterations: int = 50) -> tuple[float, float, float]:
+def fit_circle(x: np.ndarray, y: np.ndarray, iterations: int = 50) -> tuple[float, float, float]:
     """Circle (centre a, b and radius) through 2D points, least squares in the distances.
 
     Kåsa's algebraic fit (x² + y² = 2ax + 2by + c, linear) starts Gauss-Newton on the
     geometric residuals |p − c| − r: the algebraic fit alone is biased on a partial arc
     (0.1 mm on a 10 mm needle), the geometric one is not for a tube's symmetric surface.
+    ``iterations=0`` gives the algebraic fit (for points with outliers, which the plain
+    geometric least squares would follow).
     """
     A = np.stack([2 * x, 2 * y, np.ones_like(x)], axis=1)
     (a, b, c), *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
@@ -235,7 +237,7 @@ def fit_needle(model: ObjectModel | np.ndarray, *, name: str = "model") -> Needl
     """Fit the arc of a curved suturing needle to a mesh's vertices, in its model frame.
 
     The plane is the least-variance direction of the vertices, the circle a least-squares
-    fit of their in-plane coordinates (:func:`_fit_circle`), the extent the circle minus the
+    fit of their in-plane coordinates (:func:`fit_circle`), the extent the circle minus the
     largest angular gap between vertices. The tip is the end where the wire is thinner (it
     tapers to a point), the tail the other (blunt or swaged) end. Vectorised over vertices.
 
@@ -267,7 +269,7 @@ def fit_needle(model: ObjectModel | np.ndarray, *, name: str = "model") -> Needl
     u, v = _plane_basis(normal)
     rel = pts - mean
     x, y, z = rel @ u, rel @ v, rel @ normal
-    a, b, radius = _fit_circle(x, y)
+    a, b, radius = fit_circle(x, y)
     dx, dy = x - a, y - b
     dist = np.hypot(dx, dy)
     tube = np.hypot(dist - radius, z)  # distance of each vertex from the centre line

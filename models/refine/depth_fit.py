@@ -33,9 +33,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from bopsurg.models.refine.fit import ArcModel, mirror_pose, same_ends
+from bopsurg.models.refine.fit import ArcModel, cauchy, mirror_pose, same_ends
 from bopsurg.models.refine.lm import levenberg_marquardt
 from bopsurg.models.refine.wire3d import wire_distances, wire_residuals
+from bopsurg.needle import fit_circle
 
 F64 = NDArray[np.float64]
 
@@ -83,10 +84,8 @@ def pose_from_points(P: F64, arc: ArcModel) -> tuple[F64, F64] | None:
     _, _, vt = np.linalg.svd(P - c, full_matrices=False)
     e1, e2, n = vt
     xy = np.stack([(P - c) @ e1, (P - c) @ e2], axis=1)
-    # algebraic (Kasa) circle: x² + y² = 2 a x + 2 b y + k, centre (a, b)
-    A = np.column_stack([2 * xy, np.ones(len(xy))])
-    sol, *_ = np.linalg.lstsq(A, (xy**2).sum(axis=1), rcond=None)
-    centre2 = sol[:2]
+    # the algebraic circle: robust enough to tissue points, and the descent refines it
+    centre2 = np.array(fit_circle(xy[:, 0], xy[:, 1], iterations=0)[:2])
     d = xy - centre2
     mid = (d / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]).mean(axis=0)
     if not (np.isfinite(centre2).all() and np.linalg.norm(mid) > 1e-6):
@@ -107,8 +106,8 @@ def _lm(
 
     def objective(pose: tuple[F64, ...]) -> tuple[F64, F64, F64, F64]:
         r, J = wire_residuals(pose[0], pose[1], P, arc)
-        cost = 0.5 * s.scale**2 * np.log1p((r / s.scale) ** 2).sum(axis=1)
-        return cost, r, 1.0 / (1.0 + (r / s.scale) ** 2), J
+        rho, w = cauchy(r, s.scale)
+        return rho.sum(axis=1), r, w, J
 
     def moved(pose: tuple[F64, ...], step: F64) -> tuple[F64, ...]:
         return Rotation.from_rotvec(step[:, :3]).as_matrix() @ pose[0], pose[1] + step[:, 3:]

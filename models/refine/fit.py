@@ -268,7 +268,7 @@ class FitResult:
     improved: bool
 
 
-def _cauchy(r: F64, c: float) -> tuple[F64, F64]:
+def cauchy(r: F64, c: float) -> tuple[F64, F64]:
     """Cauchy loss ρ(r) = c²/2 · log(1 + (r/c)²) and its IRLS weight ρ'(r)/r."""
     q = (r / c) ** 2
     return 0.5 * c * c * np.log1p(q), 1.0 / (1.0 + q)
@@ -428,7 +428,7 @@ class _Problem:
         # back towards the camera) and the wire is wider than a pixel
         use = (t_len[..., 0] > 0.25) & (rho > 0.5) & s.tube
         use2 = np.concatenate([use, use], 1)
-        rho_r, w_r = _cauchy(d_rev, s.scale_reverse)
+        rho_r, w_r = cauchy(d_rev, s.scale_reverse)
         rho_f, w_f = _geman_mcclure(d_fwd, s.scale_forward)
         rho_s, w_s = _geman_mcclure(d_side, s.scale_outline)
         rho_s = np.where(use2, rho_s, 0.0)
@@ -436,7 +436,7 @@ class _Problem:
         cost = cost + s.outline_weight * rho_s.sum(-1) / (2 * m)
         if self.points is not None:
             r_d, J_d = wire_residuals(R, t, self.points, self.arc)
-            rho_d, w_d = _cauchy(r_d, s.depth_scale_mm)
+            rho_d, w_d = cauchy(r_d, s.depth_scale_mm)
             cost = cost + s.depth_weight * rho_d.mean(-1)
         if not with_jacobian:
             return cost, None, None, None
