@@ -20,7 +20,7 @@ from bopsurg.geometry import project_pts, transform_pts
 from bopsurg.model_frames import map_predictions, model_mapping
 from bopsurg.needle import NeedleSpec, needle_mesh
 from bopsurg.prediction import predict_dataset
-from tests.bopsurg.test_prediction import with_depth
+from tests.bopsurg.test_prediction import DepthEstimator, with_depth
 
 #: The dataset's needle = bopsurg's needle moved by (Q, q): x_dataset = Q x_ours + q.
 Q = Rotation.from_euler("xyz", [180.0, 0.0, 183.0], degrees=True).as_matrix()
@@ -198,19 +198,12 @@ def test_estimator_without_declared_models_is_not_mapped(moved_dataset, tmp_path
     assert res.R[0] == pytest.approx(g.R @ Q, abs=1e-6)
 
 
-class DepthProbe:
-    """Declares bopsurg's needle, uses depth, and keeps the depth images it was given."""
-
-    obj_ids = (1,)
-    uses_depth = True
+class DepthProbe(DepthEstimator):
+    """A depth-using estimator that declares bopsurg's needle as its model."""
 
     def __init__(self) -> None:
+        super().__init__()
         self.object_models = {1: needle_mesh()}
-        self.depths: list[np.ndarray | None] = []
-
-    def predict(self, rgb, K, *, obj_ids=None, boxes=None, depth=None):
-        self.depths.append(depth)
-        return PosePredictions.empty()
 
 
 def test_depth_reaches_the_estimator_at_its_own_needle_scale(tmp_path):
@@ -226,9 +219,10 @@ def test_depth_reaches_the_estimator_at_its_own_needle_scale(tmp_path):
     est = DepthProbe()
     run = predict_dataset(ds, est, tmp_path / "r.csv", progress=False)
     assert run.mappings[0].scale == pytest.approx(k, rel=1e-3)
-    assert run.depth_images == len(est.depths) == 2
+    assert run.depth_images == len(est.calls) == 2
     scene = ds.scene(ds.scene_ids[0])
-    for im_id, got in zip(sorted(scene.camera), est.depths, strict=True):
+    for im_id, kw in zip(sorted(scene.camera), est.calls, strict=True):
+        got = kw["depth"]
         stored = (
             load_depth(scene.depth_path(im_id)).astype(np.float64) * scene.camera[im_id].depth_scale
         )
