@@ -6,16 +6,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from bopsurg import metrics
 from bopsurg.models.refine.depth_fit import DepthFitSettings, fit_depth
 from bopsurg.models.refine.fit import ArcModel, half_turn
 from bopsurg.models.refine.wire3d import depth_points, nearest_arc_points, wire_distances
 
 ARC = ArcModel()
 K = np.array([[350.807, 0.0, 320.0], [0.0, 350.807, 240.0], [0.0, 0.0, 1.0]])
-
-
-def _deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    return float(np.rad2deg(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
 
 
 def wire_surface(
@@ -89,7 +86,7 @@ def test_the_fit_recovers_tilt_and_depth_and_keeps_the_image_fits_tip(mirrored):
         R0 = tilt_mirror(R0, t) if mirrored else R0
         fit = fit_depth(R0, t + rng.normal(0, 1.0, 3), P, ARC)
         assert fit.used
-        res.append((_deg(R0, R), _deg(fit.R, R), np.linalg.norm(fit.t - t)))
+        res.append((metrics.re(R0, R)[0], metrics.re(fit.R, R)[0], np.linalg.norm(fit.t - t)))
     re0, re, te = np.array(res).T
     if mirrored:
         assert np.median(re0) > 20.0  # the start's tilt is wrong
@@ -125,4 +122,4 @@ def test_tip_and_tail_follow_the_start():
     P = wire_surface(R, t, rng)
     swapped = R @ half_turn(ARC)
     fit = fit_depth(swapped, t, P, ARC)
-    assert _deg(fit.R, swapped) < 1.0
+    assert metrics.re(fit.R, swapped)[0] < 1.0
