@@ -157,16 +157,24 @@ def estimator_report(estimator: object) -> str | None:
     return report() if callable(report) else None
 
 
-EstimatorFactory = Any  # Callable[[Mapping[str, str]], PoseEstimator]
+def estimator_config(estimator: object) -> Mapping[str, Any] | None:
+    """An estimator's optional resolved configuration (``resolved_config()``: every setting it
+    runs with, defaults included), written next to the results; None when it offers none."""
+    resolved = getattr(estimator, "resolved_config", None)
+    return resolved() if callable(resolved) else None
 
 
-def load_estimator(name: str, options: Mapping[str, str] | None = None) -> PoseEstimator:
+EstimatorFactory = Any  # Callable[[Mapping[str, Any]], PoseEstimator]
+
+
+def load_estimator(name: str, options: Mapping[str, Any] | None = None) -> PoseEstimator:
     """Build the estimator registered as ``name`` in ``bopsurg.estimators``.
 
     Args:
         name: Entry-point name (``gdrnet`` is the built-in one).
-        options: Passed to the factory (e.g. ``{"detector": PATH, "pose": PATH, "device":
-            "cpu"}``); which keys are known is up to the estimator.
+        options: Passed to the factory: a nested mapping (:mod:`bopsurg.options`, e.g.
+            ``{"device": "cpu", "refine": {"segmenter": PATH}}``); which keys are known is
+            up to the estimator.
 
     Raises:
         BopsurgError: No such estimator, it cannot be imported, or it does not provide

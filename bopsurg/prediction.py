@@ -23,10 +23,12 @@ import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
+from bopsurg.atomic import write_text
 from bopsurg.bop.dataset import BopDataset, BopScene
 from bopsurg.bop.detections import Detections, save_detections
 from bopsurg.bop.images import load_depth, load_rgb
@@ -211,6 +213,66 @@ def _partial_to_outputs(
     return est, dets
 
 
+def run_config_path(results: str | Path) -> Path:
+    """Where the settings of a results file are written: ``RESULTS.config.yaml`` beside it
+    (``results.csv`` -> ``results.config.yaml``)."""
+    p = Path(results)
+    return p.with_name(f"{p.stem}.config.yaml")
+
+
+def save_run_config(results: str | Path, estimator: str, config: Mapping[str, Any]) -> Path:
+    """Write the settings a results file is made with (atomically): a YAML mapping that
+    ``bopsurg predict --estimator ESTIMATOR --config FILE`` takes back; returns its path."""
+    import yaml
+
+    path = run_config_path(results)
+    header = f"# bopsurg predict --estimator {estimator}: the settings of {Path(results).name}\n"
+    write_text(path, header + yaml.safe_dump(dict(config), sort_keys=False))
+    return path
+
+
+class _Mapped:
+    """An estimator whose poses come mapped into the dataset's model frames."""
+
+    def __init__(self, estimator: PoseEstimator, mappings: Mapping[int, FrameMapping]) -> None:
+        self.estimator, self.mappings, self.obj_ids = estimator, mappings, estimator.obj_ids
+
+    def predict(self, rgb: Any, K: Any, **kw: Any) -> PosePredictions:
+        pred = self.estimator.predict(rgb, K, **kw)
+        if not isinstance(pred, PosePredictions):
+            raise BopsurgError(
+                f"estimator returned {type(pred).__name__}, expected PosePredictions"
+            )
+        return map_predictions(pred, self.mappings)
+
+
+def _predict_image(
+    dataset: BopDataset,
+    estimator: PoseEstimator,
+    key: ImageKey,
+    obj_ids: tuple[int, ...],
+    boxes: Detections | None,
+    depth_divisor: float | None,
+) -> tuple[list[str], float, bool]:
+    """One image's result and detection lines, the estimator's time on it (s), and whether it
+    was given a depth image (``depth_divisor`` None: RGB only)."""
+    scene_id, im_id = key
+    scene = dataset.scene(scene_id)
+    rgb = load_rgb(scene.rgb_path(im_id))
+    K = scene.camera[im_id].K
+    extra = {}
+    if depth_divisor is not None:
+        extra["depth"] = _load_depth_mm(scene, im_id, depth_divisor)
+    t0 = time.perf_counter()
+    pred = estimator.predict(rgb, K, obj_ids=obj_ids, boxes=boxes, **extra)
+    secs = time.perf_counter() - t0
+    chunk = []
+    for k in range(len(pred)):
+        chunk.append(_format_row(scene_id, im_id, pred, k, secs))
+        chunk.append(_bbox_line(scene_id, im_id, pred, k))
+    return chunk, secs, extra.get("depth") is not None
+
+
 def predict_dataset(
     dataset: BopDataset,
     estimator: PoseEstimator,
@@ -245,6 +307,7 @@ def predict_dataset(
     for mapping in mappings.values():
         log.info("%s", mapping.describe())
     use_depth = depth and estimator_uses_depth(estimator)
+    estimator = _Mapped(estimator, mappings)
     divisor = depth_divisor(mappings) if use_depth else 1.0
     depth_images = 0
     out = Path(out)
@@ -259,37 +322,18 @@ def predict_dataset(
         # Rewrite what survived (drops a torn tail), then append image by image.
         fh.write("".join(ln + "\n" for ln in lines))
         fh.flush()
-        for scene_id, im_id in tqdm(
-            keys, desc="predict", unit="img", disable=not progress, initial=0
-        ):
-            if (scene_id, im_id) in done:
+        for key in tqdm(keys, desc="predict", unit="img", disable=not progress, initial=0):
+            if key in done:
                 continue
-            scene = dataset.scene(scene_id)
-            rgb = load_rgb(scene.rgb_path(im_id))
-            K = scene.camera[im_id].K
             img_boxes = None
             if boxes is not None:
-                img_boxes = boxes.get((scene_id, im_id), Detections.empty())
-            extra = {}
-            if use_depth:
-                extra["depth"] = _load_depth_mm(scene, im_id, divisor)
-                depth_images += extra["depth"] is not None
-            t0 = time.perf_counter()
-            pred = estimator.predict(
-                rgb, K, obj_ids=todo[(scene_id, im_id)], boxes=img_boxes, **extra
+                img_boxes = boxes.get(key, Detections.empty())
+            chunk, secs, had_depth = _predict_image(
+                dataset, estimator, key, todo[key], img_boxes, divisor if use_depth else None
             )
-            if not isinstance(pred, PosePredictions):
-                raise BopsurgError(
-                    f"estimator returned {type(pred).__name__}, expected PosePredictions"
-                )
-            pred = map_predictions(pred, mappings)
-            secs = time.perf_counter() - t0
-            chunk = []
-            for k in range(len(pred)):
-                chunk.append(_format_row(scene_id, im_id, pred, k, secs))
-                chunk.append(_bbox_line(scene_id, im_id, pred, k))
-            chunk.append(f"# done {scene_id},{im_id},{secs}")
-            done[(scene_id, im_id)] = secs
+            chunk = [*chunk, f"# done {key[0]},{key[1]},{secs}"]
+            depth_images += had_depth
+            done[key] = secs
             fh.write("".join(c + "\n" for c in chunk))
             fh.flush()
             lines.extend(chunk)

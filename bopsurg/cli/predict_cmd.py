@@ -30,7 +30,14 @@ RESULTS.partial.
 The built-in estimator 'gdrnet' (pip install bopsurg[torch]) runs a YOLOX-like detector and
 a GDR-Net-like pose head; without --detector/--pose it uses the small model shipped with
 bopsurg (see 'bopsurg train --help' to train your own). Other estimators register under the
-'bopsurg.estimators' entry-point group and get the --option KEY=VALUE pairs.
+'bopsurg.estimators' entry-point group.
+
+Settings: --config FILE (YAML) and --option KEY=VALUE (repeatable; dotted keys reach nested
+settings, values are YAML: refine.depth.weight=8, head.zoom=[1], ends.classifier=none) are
+laid over the estimator's defaults, in that order, then --detector/--pose/--device. Every
+setting of gdrnet, with its default and unit, is in bopsurg.models.predict_config (the docs'
+configuration page). The resolved settings are written to RESULTS.config.yaml beside the
+results: a --config file that reproduces the run.
 
 Model frames: a pose only means something in the frame of its object model. When the
 estimator says which needle model it was trained on and the dataset's model differs (e.g. the
@@ -41,8 +48,8 @@ radius or arc, or models that are not needles, are refused.
 Depth: an estimator that uses depth images gets each image's (DATASET's depth/ folder, in mm
 through scene_camera's depth_scale) unless --no-depth. gdrnet's refinement then fits the
 needle's arc to the 3D points of its visible mask, which fixes the tilt and the distance that
-the image alone leaves uncertain; --no-depth (or --option depth=none) is the RGB-only method,
-the one the paper evaluates. The run prints which input it used.
+the image alone leaves uncertain; --no-depth (or --option refine.depth.mode=none) is the
+RGB-only method, the one the paper evaluates. The run prints which input it used.
 """
 
 EPILOG = """\
@@ -72,7 +79,13 @@ def register(sub: Subparsers) -> None:
     p.add_argument("--detector", default=None, metavar="CKPT", help="detector checkpoint (.pt)")
     p.add_argument("--pose", default=None, metavar="CKPT", help="pose head checkpoint (.pt)")
     p.add_argument(
-        "--device", default="auto", help="cpu, cuda, cuda:1 ... (default: auto = cuda if any)"
+        "--device", default=None, help="cpu, cuda, cuda:1 ... (default: auto = cuda if any)"
+    )
+    p.add_argument(
+        "--config",
+        default=None,
+        metavar="FILE.yaml",
+        help="the estimator's settings (YAML; e.g. a RESULTS.config.yaml of an earlier run)",
     )
     p.add_argument(
         "--option",
@@ -80,7 +93,7 @@ def register(sub: Subparsers) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="estimator-specific option (repeatable)",
+        help="one setting, over --config (repeatable; dotted keys: refine.depth.weight=8)",
     )
     p.add_argument(
         "--boxes",
@@ -110,22 +123,27 @@ def run(args: argparse.Namespace) -> int:
     """Execute the subcommand."""
     from bopsurg.bop.dataset import BopDataset
     from bopsurg.bop.detections import load_detections
-    from bopsurg.estimation import estimator_report, estimator_uses_depth, load_estimator
-    from bopsurg.prediction import predict_dataset
+    from bopsurg.estimation import (
+        estimator_config,
+        estimator_report,
+        estimator_uses_depth,
+        load_estimator,
+    )
+    from bopsurg.options import plugin_options
+    from bopsurg.prediction import predict_dataset, save_run_config
 
     if args.max_images is not None and args.max_images < 1:
         raise BopsurgError(f"--max-images must be >= 1, got {args.max_images}")
     dataset = BopDataset(args.dataset, args.split, split_type=args.split_type)
-    options = dict(args.option)
-    options["device"] = args.device
-    if args.detector is not None:
-        options["detector"] = args.detector
-    if args.pose is not None:
-        options["pose"] = args.pose
+    options = plugin_options(args.config, args.option, {"device": "auto"})
+    for key in ("device", "detector", "pose"):
+        if getattr(args, key) is not None:
+            options[key] = getattr(args, key)
     boxes = None
     if args.boxes is not None:
         boxes, _ = load_detections(args.boxes)
     estimator = load_estimator(args.estimator, options)
+    written = save_run_config(args.out, args.estimator, estimator_config(estimator) or options)
     done = predict_dataset(
         dataset,
         estimator,
@@ -146,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
             if args.no_depth
             else f"input: RGB-D (depth images of {done.depth_images} images)"
         )
+    print(f"settings: {written}")
     report = estimator_report(estimator)
     if report:
         print(f"{args.estimator}: {report}")

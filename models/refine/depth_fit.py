@@ -21,7 +21,7 @@ with ``points``), which also weighs the image:
 - guard: too few points, points on one line, or too few of them on the fitted wire, and the
   given pose is kept.
 
-Units: mm, px; poses model-to-camera in the estimator's needle frame (:class:`.fit.ArcModel`),
+Units: mm, px; poses model-to-camera in the estimator's needle frame (:class:`.arc.ArcModel`),
 ``x_cam = R x_model + t``; depth in mm, 0 where there is no reading.
 """
 
@@ -33,25 +33,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from bopsurg.models.refine.fit import ArcModel, cauchy, mirror_pose, same_ends
+from bopsurg.models.predict_config import PointsFitSettings
+from bopsurg.models.refine.arc import ArcModel, mirror_pose, same_ends
+from bopsurg.models.refine.fit import cauchy
 from bopsurg.models.refine.lm import levenberg_marquardt
 from bopsurg.models.refine.wire3d import wire_distances, wire_residuals
 from bopsurg.needle import fit_circle
 
 F64 = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class DepthFitSettings:
-    """Knobs of :func:`fit_depth` (mm for distances)."""
-
-    scale: float = 0.7  # Cauchy scale of the point-to-wire distance, mm (AMBF stores 1 mm steps)
-    iterations: int = 15
-    max_points: int = 600  # evenly strided in the order given (deterministic)
-    min_points: int = 12  # fewer points with depth and the image fit's pose is kept
-    inlier_mm: float = 1.5  # a point this near the fitted wire counts as on it
-    min_inliers: float = 0.5  # share of the points on the fitted wire, else the pose is kept
-    lambda0: float = 1e-3
 
 
 @dataclass(frozen=True)
@@ -99,7 +88,7 @@ def pose_from_points(P: F64, arc: ArcModel) -> tuple[F64, F64] | None:
 
 
 def _lm(
-    R_start: F64, t_start: F64, P: F64, arc: ArcModel, s: DepthFitSettings
+    R_start: F64, t_start: F64, P: F64, arc: ArcModel, s: PointsFitSettings
 ) -> tuple[F64, F64, F64]:
     """The Cauchy fit of the wire to the points ``P`` from S starts in lockstep
     (:func:`.lm.levenberg_marquardt`): R (S, 3, 3), t (S, 3) mm, robust cost (S,)."""
@@ -127,7 +116,7 @@ def _collinear(P: F64) -> bool:
 
 
 def fit_depth(
-    R: F64, t: F64, P: F64, arc: ArcModel, settings: DepthFitSettings | None = None
+    R: F64, t: F64, P: F64, arc: ArcModel, settings: PointsFitSettings | None = None
 ) -> DepthFit:
     """The needle's pose fitted to its wire's 3D points (see the module docstring).
 
@@ -142,7 +131,7 @@ def fit_depth(
     Returns:
         The fitted pose, or the input one (``used`` False) when the guard refuses the fit.
     """
-    s = settings or DepthFitSettings()
+    s = settings or PointsFitSettings()
     R, t = np.asarray(R, float), np.asarray(t, float)
     P = np.asarray(P, float).reshape(-1, 3)
     if len(P) > s.max_points:

@@ -18,7 +18,7 @@ The pose is swapped when its tail patch looks more like a tip than its tip patch
 does not depend on the scene's colours or on which face the camera sees (patches are flipped
 about their x axis in training: the mirror image of an end is the same end).
 
-Units: px, mm; poses model-to-camera in the estimator's needle frame (:class:`.fit.ArcModel`:
+Units: px, mm; poses model-to-camera in the estimator's needle frame (:class:`.arc.ArcModel`:
 arc centre at the origin, tail at angle 0 on +x, tip at ``arc_rad`` about +z).
 """
 
@@ -38,7 +38,7 @@ from torch import nn
 
 from bopsurg.errors import CheckpointError
 from bopsurg.models.checkpoint import config_path, load_checkpoint, load_weights
-from bopsurg.models.refine.fit import ArcModel, half_turn
+from bopsurg.models.refine.arc import ArcModel, half_turn
 
 F64 = NDArray[np.float64]
 
@@ -77,7 +77,8 @@ class EndConfig:
 
 def swapped(R: F64, arc: ArcModel) -> F64:
     """Rotations (n, 3, 3) with the needle's tip and tail swapped (same arc in the image)."""
-    return np.asarray(R, float) @ half_turn(arc)
+    out: F64 = np.asarray(R, float) @ half_turn(arc)
+    return out
 
 
 def end_frames(K: F64, R: F64, t: F64, arc: ArcModel, cfg: EndConfig) -> tuple[F64, F64, F64]:
@@ -145,7 +146,8 @@ class EndNet(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         # centred on the image's mean: the tissue's brightness is not a cue
         x = x - x.mean(dim=(1, 2, 3), keepdim=True)
-        return self.head(self.body(x).mean(dim=(2, 3)))[:, 0]
+        logits: torch.Tensor = self.head(self.body(x).mean(dim=(2, 3)))[:, 0]
+        return logits
 
 
 @dataclass

@@ -17,25 +17,18 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import torch
+from numpy.typing import NDArray
 
 from bopsurg.errors import BopsurgError
 from bopsurg.geometry import transform_pts
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
 from bopsurg.models.pose.roi import crop
+from bopsurg.models.predict_config import DepthSettings, FitSettings
+from bopsurg.models.refine.arc import ArcModel
 from bopsurg.models.refine.depth_fit import fit_depth
-from bopsurg.models.refine.fit import (
-    MIN_EVIDENCE,
-    ArcModel,
-    Evidence,
-    FitResult,
-    FitSettings,
-    refine_pose,
-)
+from bopsurg.models.refine.fit import Evidence, FitResult, refine_pose
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
 from bopsurg.models.refine.wire3d import depth_points, wire_distances
-
-#: Foreground threshold on the segmenter's probability.
-MASK_THRESHOLD = 0.5
 
 #: The fit's evidence from a segmenter: ``full`` (the default when the segmenter predicts the
 #: full, amodal mask: the arc may lie on the full mask, the pixels it must explain are the
@@ -55,11 +48,11 @@ class Segmenter:
     Args:
         path: The checkpoint.
         device: Where it runs.
-        mask: The mask it returns (:data:`MASK_KINDS`); None: ``full`` when the checkpoint
+        mask: The mask it returns (:data:`MASK_KINDS`); ``auto``: ``full`` when the checkpoint
             predicts it, else ``visible``.
     """
 
-    def __init__(self, path: str | Path, device: torch.device, mask: str | None = None) -> None:
+    def __init__(self, path: str | Path, device: torch.device, mask: str = "auto") -> None:
         state, info = load_checkpoint(path, "needle_seg")
         try:
             self.cfg = SegConfig.from_dict(info["config"])
@@ -69,7 +62,7 @@ class Segmenter:
             raise BopsurgError(
                 f"{Path(path).with_suffix('.json')}: bad segmenter config ({err})"
             ) from err
-        if mask is None:
+        if mask == "auto":
             mask = "full" if self.cfg.amodal else "visible"
         if mask not in MASK_KINDS:
             raise BopsurgError(f"segmenter mask must be one of {MASK_KINDS}, got {mask!r}")
@@ -149,14 +142,15 @@ class RoiMasks:
     origin: np.ndarray
     step: np.ndarray
 
-    def visible_boxes(self) -> np.ndarray:
+    def visible_boxes(self, threshold: float) -> np.ndarray:
         """(n, 4) boxes (x, y, w, h) of each ROI's visible mask (probability above
-        :data:`MASK_THRESHOLD`), pixel-centre px like the estimator's boxes (x, y: the left and
+        ``threshold``), pixel-centre px like the estimator's boxes (x, y: the left and
         top edges of the first pixel); NaN where the mask is empty."""
-        vis = (self.prob[:, 0] if self.prob.ndim == 4 else self.prob) > MASK_THRESHOLD
+        prob = np.asarray(self.prob[:, 0] if self.prob.ndim == 4 else self.prob, np.float64)
+        vis: NDArray[np.bool_] = np.asarray(prob > threshold, dtype=bool).reshape(prob.shape)
         out = np.full((len(vis), 4), np.nan)
         rows, cols = vis.any(axis=2), vis.any(axis=1)  # (n, S): rows / columns with foreground
-        some = rows.any(axis=1)
+        some = np.any(rows, axis=1)
         idx = np.arange(vis.shape[-1])
         lo = np.stack([np.where(cols, idx, np.inf).min(1), np.where(rows, idx, np.inf).min(1)], 1)
         hi = np.stack([np.where(cols, idx, -np.inf).max(1), np.where(rows, idx, -np.inf).max(1)], 1)
@@ -189,16 +183,6 @@ class Refined(NamedTuple):
     unheld: np.ndarray
 
 
-@dataclass
-class RefineStats:
-    """How many ROIs the fit improved, and how many kept the network's pose."""
-
-    refined: int = 0
-    kept: int = 0
-    #: RGB-D fits whose pose came from the fit without the network's prior.
-    unheld: int = 0
-
-
 class NeedleRefiner:
     """Refines pose-head estimates of the needle against full-resolution evidence.
 
@@ -208,7 +192,8 @@ class NeedleRefiner:
         arc: the needle's centre line.
         grid: evidence grid side S, px (the segmenter's ROI side).
         pad: grid side = pad · max(w, h) of the detection box.
-        settings: fit knobs.
+        fit: the image fit's settings.
+        depth: the RGB-D fit's settings (used when :meth:`fit` gets a depth image).
         whole: frame the box grown to hold the start pose's whole projected arc (a segmenter
             trained with :attr:`SegConfig.frame` ``"whole"``), so that the evidence covers
             the part of a needle hidden in tissue.
@@ -220,29 +205,21 @@ class NeedleRefiner:
         arc: ArcModel,
         grid: int,
         pad: float = 1.5,
-        settings: FitSettings | None = None,
+        fit: FitSettings | None = None,
+        depth: DepthSettings | None = None,
         whole: bool = False,
     ) -> None:
         self.evidence, self.arc, self.grid, self.pad = evidence, arc, grid, pad
         self.whole = whole
-        self.settings = settings or FitSettings()
-        self.stats = RefineStats()
+        self.settings = fit or FitSettings()
+        self.depth = depth or DepthSettings()
 
     @classmethod
-    def from_checkpoint(
-        cls,
-        path: str | Path,
-        device: torch.device,
-        settings: FitSettings | None = None,
-        mask: str | None = None,
+    def for_segmenter(
+        cls, seg: Segmenter, fit: FitSettings | None = None, depth: DepthSettings | None = None
     ) -> NeedleRefiner:
-        """A refiner on the segmenter ``path`` (``mask``: see :class:`Segmenter`)."""
-        return cls.for_segmenter(Segmenter(path, device, mask), settings)
-
-    @classmethod
-    def for_segmenter(cls, seg: Segmenter, settings: FitSettings | None = None) -> NeedleRefiner:
         """A refiner on a loaded segmenter: its arc, ROI size, padding and framing."""
-        return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, settings, seg.cfg.frame == "whole")
+        return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, fit, depth, seg.cfg.frame == "whole")
 
     def grids(self, box_xywh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Grid centre (n, 2) px and side (n,) px of boxes (x, y, w, h) in pixel-centre px."""
@@ -267,6 +244,10 @@ class NeedleRefiner:
         step = side.detach().cpu().double().numpy() / self.grid
         return RoiMasks(np.asarray(prob), c_np - 0.5 * self.grid * step[:, None], step)
 
+    def visible_boxes(self, masks: RoiMasks) -> np.ndarray:
+        """(n, 4) boxes of the ROIs' visible masks (see :meth:`RoiMasks.visible_boxes`)."""
+        return masks.visible_boxes(self.settings.mask_threshold)
+
     def fit(
         self,
         masks: RoiMasks,
@@ -280,39 +261,40 @@ class NeedleRefiner:
 
         With a ``depth`` image (H, W) mm (0: no reading), RGB-D: the visible mask's pixels
         back-projected are the fit's points (its depth term), the arc fitted to those points
-        alone (:func:`.depth_fit.fit_depth`) is one more start, and the fit is also run
-        without the network's prior (:meth:`_unheld`)."""
+        alone (:func:`.depth_fit.fit_depth`) is one more start, and with
+        :attr:`DepthSettings.unheld` the fit is also run without the network's prior
+        (:meth:`_unheld`)."""
         R_out, t_out = R.copy(), t.copy()
         changed = np.zeros(len(R), dtype=bool)
         unheld = np.zeros(len(R), dtype=bool)
-        up = max(1, int(self.settings.evidence_upsample))
+        s = self.settings
         for i in range(len(R)):  # one small least-squares problem per ROI
-            p_i, origin, step = upsampled(masks.prob[i], up, masks.origin[i], masks.step[i])
-            fg = p_i > MASK_THRESHOLD
-            # (2, S, S): visible and full; the full mask bounds the arc, the visible one is
-            # what it must explain
-            ev = (
-                Evidence.from_mask(fg[1], origin, step, explain=fg[0])
-                if fg.ndim == 3
-                else Evidence.from_mask(fg, origin, step)
-            )
-            points, starts = None, ()
+            ev, visible = self._evidence(masks, i)
+            points: np.ndarray | None = None
+            starts: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
             if depth is not None:
-                vis = fg[0] if fg.ndim == 3 else fg
-                rows, cols = np.nonzero(vis)
-                points = depth_points(origin + step * np.stack([cols, rows], 1), depth, K)
-                alone = fit_depth(R[i], t[i], points, self.arc)
-                points = points if len(points) >= MIN_EVIDENCE else None
+                rows, cols = np.nonzero(visible)
+                points = depth_points(ev.origin + ev.step * np.stack([cols, rows], 1), depth, K)
+                alone = fit_depth(R[i], t[i], points, self.arc, self.depth.points)
+                points = points if len(points) >= s.min_evidence else None
                 starts = ((alone.R, alone.t),) if alone.used else ()
-            res = refine_pose(R[i], t[i], K, ev, self.arc, self.settings, points, starts)
-            if points is not None:
+            res = refine_pose(R[i], t[i], K, ev, self.arc, s, points, starts, depth=self.depth)
+            if points is not None and self.depth.unheld:
                 free = self._unheld(res, R[i], t[i], K, ev, points, starts)
                 res, unheld[i] = free or res, free is not None
             R_out[i], t_out[i], changed[i] = res.R, res.t, res.improved
-        self.stats.refined += int(changed.sum())
-        self.stats.kept += int((~changed).sum())
-        self.stats.unheld += int(unheld.sum())
         return Refined(R_out, t_out, changed, unheld)
+
+    def _evidence(self, masks: RoiMasks, i: int) -> tuple[Evidence, np.ndarray]:
+        """ROI ``i``'s evidence for the fit, and its visible mask (on the evidence's grid)."""
+        up = max(1, int(self.settings.evidence_upsample))
+        p_i, origin, step = upsampled(masks.prob[i], up, masks.origin[i], masks.step[i])
+        fg = p_i > self.settings.mask_threshold
+        # (2, S, S): visible and full; the full mask bounds the arc, the visible one is
+        # what it must explain
+        if fg.ndim == 3:
+            return Evidence.from_mask(fg[1], origin, step, explain=fg[0]), fg[0]
+        return Evidence.from_mask(fg, origin, step), fg
 
     def _unheld(
         self,
@@ -325,22 +307,24 @@ class NeedleRefiner:
         starts: tuple[tuple[np.ndarray, np.ndarray], ...],
     ) -> FitResult | None:
         """The fit without the network's prior where it puts clearly more points on its wire
-        than the held RGB-D fit ``res`` (:attr:`FitSettings.depth_unheld_share`; less where
-        the network's pose ``R``, ``t`` is lost: :attr:`FitSettings.depth_lost_share`), else
+        than the held RGB-D fit ``res`` (:attr:`DepthSettings.unheld_share`; less where
+        the network's pose ``R``, ``t`` is lost: :attr:`DepthSettings.lost_share`), else
         None."""
-        s = self.settings
+        d = self.depth
 
         def on_wire(R_: np.ndarray, t_: np.ndarray, tol: float) -> float:
-            d = wire_distances(R_[None], t_[None], points, self.arc)[0]
-            return float((np.abs(d) <= tol).mean())
+            dist = wire_distances(R_[None], t_[None], points, self.arc)[0]
+            return float((np.abs(dist) <= tol).mean())
 
-        lost = on_wire(R, t, s.depth_lost_mm) < s.depth_lost_share
-        lead = s.depth_unheld_share_lost if lost else s.depth_unheld_share
-        held = on_wire(res.R, res.t, s.depth_inlier_mm)
+        lost = d.lost_share > 0 and on_wire(R, t, d.lost_mm) < d.lost_share
+        lead = d.unheld_share_lost if lost else d.unheld_share
+        held = on_wire(res.R, res.t, d.inlier_mm)
         if held + lead > 1.0:  # no fit can put that many more on its wire
             return None
-        free = refine_pose(R, t, K, ev, self.arc, s, points, starts, own_priors=True)
-        if free.improved and on_wire(free.R, free.t, s.depth_inlier_mm) >= held + lead:
+        free = refine_pose(
+            R, t, K, ev, self.arc, self.settings, points, starts, own_priors=True, depth=d
+        )
+        if free.improved and on_wire(free.R, free.t, d.inlier_mm) >= held + lead:
             return free
         return None
 
@@ -351,13 +335,16 @@ class NeedleRefiner:
         box_xywh: torch.Tensor,
         R: np.ndarray,
         t: np.ndarray,
+        depth: np.ndarray | None = None,
     ) -> Refined:
-        """The refined poses (:class:`Refined`): :meth:`observe`, then :meth:`fit`.
+        """The refined poses (:class:`Refined`): :meth:`observe`, then :meth:`fit` (no re-crops:
+        those are the stage's, :class:`bopsurg.models.stages.refine.RefineStage`).
 
         Args:
             image: (1, 3, H, W) float RGB in [0, 1].
             K: (3, 3) intrinsics, px.
             box_xywh: (n, 4) boxes (x, y, w, h), pixel-centre px.
             R, t: the pose head's estimates, float64.
+            depth: (H, W) depth image, mm, or None (RGB only).
         """
-        return self.fit(self.observe(image, K, box_xywh, R, t), K, R, t)
+        return self.fit(self.observe(image, K, box_xywh, R, t), K, R, t, depth)

@@ -43,8 +43,8 @@ from bopsurg.models.checkpoint import save_checkpoint
 from bopsurg.models.data import list_instances, open_split, split_scenes
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
+from bopsurg.models.refine.arc import ArcModel, dataset_arc
 from bopsurg.models.refine.ends import TIP, EndConfig, EndNet, end_frames, sample_patches
-from bopsurg.models.refine.fit import ArcModel, dataset_arc
 from bopsurg.models.training import warmup_cosine_lr
 
 log = logging.getLogger(__name__)

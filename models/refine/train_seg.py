@@ -49,7 +49,7 @@ from bopsurg.models.data import (
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.pose.roi import crop, dzi_boxes
-from bopsurg.models.refine.fit import dataset_arc
+from bopsurg.models.refine.arc import dataset_arc
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig, seg_loss
 from bopsurg.models.training import warmup_cosine_lr
 

@@ -5,20 +5,17 @@ A depth image gives, for each pixel of the wire, a point of the wire's visible s
 within ``wire_radius`` of the arc's centre line. The residual of a point is its distance to
 the centre line (the nearest point of the arc, its ends included) less that radius, mm.
 
-Units: mm, px; poses model-to-camera in the estimator's needle frame (:class:`.fit.ArcModel`:
+Units: mm, px; poses model-to-camera in the estimator's needle frame (:class:`.arc.ArcModel`:
 arc centre at the origin, tail at angle 0 on +x, tip at ``arc_rad`` about +z),
 ``x_cam = R x_model + t``; depth in mm, 0 where there is no reading.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:  # fit.py imports this module
-    from bopsurg.models.refine.fit import ArcModel
+from bopsurg.models.refine.arc import ArcModel
 
 F64 = NDArray[np.float64]
 
@@ -50,7 +47,8 @@ def nearest_arc_points(q: F64, arc: ArcModel) -> F64:
     past_tip = a - arc.arc_rad
     before_tail = 2 * np.pi - a
     theta = np.where(a <= arc.arc_rad, a, np.where(past_tip < before_tail, arc.arc_rad, 0.0))
-    return arc.radius * np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], axis=-1)
+    out: F64 = arc.radius * np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], -1)
+    return out
 
 
 def wire_distances(R: F64, t: F64, P: F64, arc: ArcModel) -> F64:
@@ -58,7 +56,8 @@ def wire_distances(R: F64, t: F64, P: F64, arc: ArcModel) -> F64:
     line's distance less ``wire_radius``; negative inside) at poses ``R`` (S, 3, 3), ``t``
     (S, 3)."""
     diff, _ = _offsets(R, t, P, arc)
-    return np.linalg.norm(diff, axis=-1) - arc.wire_radius
+    out: F64 = np.linalg.norm(diff, axis=-1) - arc.wire_radius
+    return out
 
 
 def _offsets(R: F64, t: F64, P: F64, arc: ArcModel) -> tuple[F64, F64]:

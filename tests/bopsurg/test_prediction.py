@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 
 from bopsurg import plugins
 from bopsurg.bop.dataset import BopDataset
@@ -190,10 +191,21 @@ def test_predict_cli_with_a_plugin_estimator_and_external_boxes(
     boxes = tmp_path / "boxes.json"
     save_detections(boxes, {(1, 0): Detections([1], [0.8], [[1, 2, 3, 4]])})
     out = tmp_path / "r.csv"
+    config = tmp_path / "settings.yaml"
+    config.write_text("k: from-file\nsection: {a: 1, b: 2}\n")
     args = ["predict", str(example.root), "--out", str(out), "--estimator", "oracle"]
-    code = main([*args, "--option", "k=v", "--boxes", str(boxes), "--no-progress"])
+    args += ["--config", str(config), "--option", "section.b=[1, 2.5]", "--option", "k=v"]
+    code = main([*args, "--boxes", str(boxes), "--no-progress"])
     assert code == 0
-    assert seen == {"k": "v", "device": "auto"}
+    # the file, then the dotted options (YAML values), then the flags' defaults
+    expected = {"device": "auto", "k": "v", "section": {"a": 1, "b": [1, 2.5]}}
+    assert seen == expected
+    # an estimator without resolved_config(): the options it got are what made the results
+    written = tmp_path / "r.config.yaml"
+    assert yaml.safe_load(written.read_text()) == expected
+    assert "settings: " in capsys.readouterr().out
+    assert main([*args[:6], "--config", str(written), "--boxes", str(boxes), "--no-progress"]) == 0
+    assert seen == expected  # the written file reproduces the run
     est = load_results(out)
     # Images without an external box get no estimate.
     assert set(zip(est.scene_id.tolist(), est.im_id.tolist(), strict=True)) == {(1, 0)}

@@ -7,8 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bopsurg import metrics
-from bopsurg.models.refine.depth_fit import DepthFitSettings, fit_depth
-from bopsurg.models.refine.fit import ArcModel, half_turn
+from bopsurg.models.predict_config import PointsFitSettings
+from bopsurg.models.refine.arc import ArcModel, half_turn
+from bopsurg.models.refine.depth_fit import fit_depth
 from bopsurg.models.refine.wire3d import depth_points, nearest_arc_points, wire_distances
 
 ARC = ArcModel()
@@ -104,7 +105,7 @@ def test_the_guard_keeps_the_pose_without_a_wire_in_the_points():
     np.testing.assert_array_equal(fit.R, R)
     np.testing.assert_array_equal(fit.t, t)
     few = wire_surface(R, t, rng)[:5]
-    assert not fit_depth(R, t, few, ARC, DepthFitSettings(min_points=12)).used
+    assert not fit_depth(R, t, few, ARC, PointsFitSettings(min_points=12)).used
     # points on one line (or one point) leave the arc free to turn about it, though an arc
     # passes through them: here the line touches the start's wire at its middle
     a = ARC.arc_rad / 2

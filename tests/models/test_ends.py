@@ -17,6 +17,8 @@ torch = pytest.importorskip("torch")
 from bopsurg.example import ExampleSpec, write_example_dataset  # noqa: E402
 from bopsurg.models.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from bopsurg.models.estimator import create  # noqa: E402
+from bopsurg.models.predict_config import EndsSettings  # noqa: E402
+from bopsurg.models.refine.arc import ArcModel  # noqa: E402
 from bopsurg.models.refine.ends import (  # noqa: E402
     TAIL,
     TIP,
@@ -29,12 +31,18 @@ from bopsurg.models.refine.ends import (  # noqa: E402
     sample_patches,
     swapped,
 )
-from bopsurg.models.refine.fit import ArcModel  # noqa: E402
 from tests.models.cli_errors import one_line_error  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+#: Options of an estimator without detector, refinement or end check.
+BARE = {
+    "detector": None,
+    "device": "cpu",
+    "refine": {"segmenter": None},
+    "ends": {"classifier": None},
+}
 MODEL = needle_mesh()
 ARC = ArcModel.from_keypoints(MODEL.pts[0], MODEL.pts[-1])
 
@@ -215,9 +223,10 @@ def test_the_margin_chosen_for_a_classifier_travels_with_it(dataset, tmp_path):
     assert load_checkpoint(path, "needle_ends")[1]["meta"]["margin"] == 2.5
     assert load_judge(path, torch.device("cpu")).margin == 2.5
     assert load_judge(path, torch.device("cpu"), margin=1.0).margin == 1.0
-    opts = {"no_detector": "1", "refine": "none", "ends": str(path), "device": "cpu"}
-    assert create(opts).ends.margin == 2.5  # the classifier's own
-    assert create({**opts, "ends_margin": "0"}).ends.margin == 0.0  # the user's
+    # the estimator's margin is its config's (one home for every setting), not the file's
+    opts = {**BARE, "ends": {"classifier": str(path)}}
+    assert create(opts).ends.judge.margin == EndsSettings().margin
+    assert create({**opts, "ends": {"classifier": str(path), "margin": 0}}).ends.judge.margin == 0
     info = load_checkpoint(path, "needle_ends")[1]
     save_checkpoint(
         path, load_checkpoint(path, "needle_ends")[0], kind="needle_ends",
@@ -229,7 +238,7 @@ def test_the_margin_chosen_for_a_classifier_travels_with_it(dataset, tmp_path):
 
 def test_the_seen_ends_are_labelled_tip_and_tail(dataset):
     from bopsurg.bop.dataset import BopDataset
-    from bopsurg.models.refine.fit import dataset_arc
+    from bopsurg.models.refine.arc import dataset_arc
     from bopsurg.models.refine.train_ends import collect_ends
 
     ds = BopDataset(dataset, "train")
@@ -257,34 +266,27 @@ def test_trainer_errors_are_one_line(dataset, tmp_path, capsys):
 def test_estimator_options_switch_the_end_check(dataset, tmp_path):
     assert _train(dataset, tmp_path / "e") == 0
     path = tmp_path / "e" / "needle_ends.pt"
-    on = create({"no_detector": "1", "refine": "none", "ends": str(path), "device": "cpu"})
+    on = create({**BARE, "ends": {"classifier": str(path)}})
     assert on.ends is not None
-    off = create({"no_detector": "1", "refine": "none", "ends": "none", "device": "cpu"})
+    off = create(BARE)
     assert off.ends is None
     with pytest.raises(BopsurgError, match="does not exist"):
-        create({"no_detector": "1", "ends": str(tmp_path / "no.pt")})
-    with pytest.raises(BopsurgError, match="bad option value"):
-        create({"no_detector": "1", "ends_margin": "x"})
+        create({**BARE, "ends": {"classifier": str(tmp_path / "no.pt")}})
+    with pytest.raises(BopsurgError, match=r"ends\.margin"):
+        create({**BARE, "ends": {"margin": "x"}})
     with pytest.raises(BopsurgError, match="finite"):
-        create({"no_detector": "1", "ends_margin": "nan"})
+        create({**BARE, "ends": {"margin": float("nan")}})
     # a classifier of another needle than the refinement's segmenter is refused
-    from bopsurg.models.estimator import SHIPPED_SEGMENTER
-
     cfg = EndConfig(patch=16, width=2)
     other = tmp_path / "other.pt"
     meta = {"arc": {"radius": 5.0, "arc_rad": ARC.arc_rad}}
     save_checkpoint(
         other, EndNet(cfg).state_dict(), kind="needle_ends", config=cfg.to_dict(), meta=meta
     )
-    fit = {
-        "no_detector": "1",
-        "refine": "fit",
-        "segmenter": str(SHIPPED_SEGMENTER),
-        "device": "cpu",
-    }
+    fit = {**BARE, "refine": {"segmenter": "shipped"}}
     with pytest.raises(BopsurgError, match="trained for another needle"):
-        create({**fit, "ends": str(other)})
-    assert create({**fit, "ends": str(path)}).ends is not None
+        create({**fit, "ends": {"classifier": str(other)}})
+    assert create({**fit, "ends": {"classifier": str(path)}}).ends is not None
 
 
 def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
@@ -295,27 +297,23 @@ def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
         load_judge(path, torch.device("cpu"))
 
 
-@pytest.mark.parametrize("unheld", [False, True])
-def test_the_classifier_decides_alone_where_the_head_was_lost(monkeypatch, unheld):
-    """The end check's margin is the pose head's say on which end is the tip; the estimator
-    drops it (margin 0) for a pose the RGB-D fit took without the head's prior."""
-    from bopsurg.bop.detections import Detections
-    from bopsurg.models.estimator import SHIPPED_SEGMENTER, UNHELD_ENDS_MARGIN
+@pytest.mark.parametrize(("unheld", "unheld_margin", "turned"), [
+    (False, None, False), (True, None, False), (False, 0.0, False), (True, 0.0, True),
+])  # fmt: skip
+def test_the_end_stage_judges_unheld_poses_at_their_own_margin_when_set(
+    unheld, unheld_margin, turned
+):
+    """The margin is the pose head's say on which end is the tip; ``ends.unheld_margin``
+    (off by default) gives poses the RGB-D fit took without the head's prior another one."""
+    from bopsurg.models.stages.ends import EndStage
 
-    est = create({"no_detector": "1", "segmenter": str(SHIPPED_SEGMENTER), "device": "cpu"})
     cfg = EndConfig()
-    est.ends = EndJudge(_Bright(cfg), cfg, ARC, margin=10.0)  # far above what it can say
+    settings = EndsSettings(margin=10.0, unheld_margin=unheld_margin)  # 10: above its say
+    stage = EndStage(EndJudge(_Bright(cfg), cfg, ARC, margin=settings.margin), settings)
     R, t = np.eye(3)[None], np.array([[0.0, 0.0, 70.0]])
     wrong = swapped(R, ARC)
-
-    def refined(head, image, K_, box, R0, t0, depth=None):
-        return wrong.copy(), t.copy(), box.numpy().astype(float), np.zeros(1, bool), [unheld]
-
-    monkeypatch.setattr(est, "refine_needles", refined)
     image = _frame_with_a_bright_tip(R[0], t[0])
-    rgb = (image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
-    boxes = Detections(np.array([1]), np.array([0.9]), np.array([[250.0, 200.0, 140.0, 80.0]]))
-    out = est.predict(rgb, K, boxes=boxes)
-    assert UNHELD_ENDS_MARGIN == 0.0
-    np.testing.assert_allclose(out.R[0], R[0] if unheld else wrong[0], atol=1e-12)
-    assert est.ends.stats.swapped == int(unheld)
+    out = stage(image, K, wrong, t, np.array([unheld]))
+    np.testing.assert_allclose(out[0], R[0] if turned else wrong[0], atol=1e-12)
+    assert stage.judge.stats.swapped == int(turned)
+    assert ("turned 1 of 1" in stage.report()) == turned

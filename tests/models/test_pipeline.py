@@ -27,8 +27,8 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("pybullet")
 
 from bopsurg.models.checkpoint import load_tensors  # noqa: E402
-from bopsurg.models.estimator import SHIPPED  # noqa: E402
 from bopsurg.models.pose import mean_pose  # noqa: E402
+from bopsurg.models.predict_config import SHIPPED_DIR as SHIPPED  # noqa: E402
 
 SMALL = ["--width", "320", "--height", "240", "--K", "180,180,160,120", "--no-progress"]
 
@@ -156,7 +156,7 @@ def test_predict_then_eval(dataset, trained, tmp_path, capsys):
     det, pose = trained
     out = tmp_path / "res.csv"
     args = ["predict", str(dataset), "--out", str(out), "--detector", str(det), "--pose", str(pose)]
-    assert main([*args, "--option", "conf=0", "--device", "cpu", "--no-progress"]) == 0
+    assert main([*args, "--option", "detect.conf=0", "--device", "cpu", "--no-progress"]) == 0
     est = load_results(out)
     assert len(est) > 0
     assert (est.time > 0).all()
@@ -176,7 +176,9 @@ def test_external_boxes_and_pnp_decoding(dataset, trained, tmp_path, capsys):
     save_detections(path, boxes)
     out = tmp_path / "res.csv"
     args = ["predict", str(dataset), "--out", str(out), "--pose", str(pose), "--boxes", str(path)]
-    assert main([*args, "--option", "decode=pnp", "--detector", str(det), "--no-progress"]) == 0
+    assert (
+        main([*args, "--option", "head.decode=pnp", "--detector", str(det), "--no-progress"]) == 0
+    )
     assert "gdrnet: PnP-RANSAC solved" in capsys.readouterr().out
     est = load_results(out)
     assert set(zip(est.scene_id.tolist(), est.im_id.tolist(), strict=False)) <= set(boxes)
@@ -195,12 +197,13 @@ def test_zoomed_decoding_averages_the_poses_of_its_crops(dataset, trained):
     boxes.bbox[1] += np.array([3.0, -2.0, 4.0, 6.0])
 
     def run(zoom):
-        opts = {"detector": str(det), "pose": str(pose), "refine": "none", "zoom": zoom}
-        est = load_estimator("gdrnet", opts | {"device": "cpu", "max_per_object": "2"})
+        opts = {"detector": str(det), "pose": str(pose), "refine": {"segmenter": None}}
+        opts |= {"head": {"zoom": zoom}, "detect": {"max_per_object": 2}, "device": "cpu"}
+        est = load_estimator("gdrnet", opts)
         return est.predict(rgb, K, boxes=boxes)
 
-    both = run("0.8,1.2")
-    a, b = run("0.8"), run("1.2")
+    both = run([0.8, 1.2])
+    a, b = run([0.8]), run([1.2])
     R_m, t_m = (
         x.numpy()
         for x in mean_pose(
@@ -210,7 +213,7 @@ def test_zoomed_decoding_averages_the_poses_of_its_crops(dataset, trained):
     assert np.allclose(both.t, t_m, atol=1e-3)  # float32 network, batched differently
     assert np.allclose(both.R, R_m, atol=1e-4)
     assert not np.allclose(a.t, b.t)  # the two sides do see different crops
-    for bad in ("0", "1,x", "-1"):
+    for bad in ([0], [1, "x"], [-1], []):
         with pytest.raises(BopsurgError, match="zoom"):
             run(bad)
 
@@ -256,16 +259,19 @@ def test_the_shipped_model_is_small_and_loads():
     assert (SHIPPED / "MODEL_CARD.md").is_file()
     if (SHIPPED / "needle_ends.pt").exists():  # the end check, at the margin chosen for it
         assert est.ends is not None
-        assert est.ends.margin > 0
+        assert est.ends.judge.margin > 0
 
 
 @pytest.mark.skipif(not (SHIPPED / "detector.pt").exists(), reason="no shipped model yet")
 def test_the_detector_runs_at_another_input_size_on_request():
-    opts = {"device": "cpu", "refine": "none", "conf": "0.0001"}
-    default = load_estimator("gdrnet", opts)
-    trained = "x".join(str(v) for v in default.detector.cfg.input_hw)
-    same = load_estimator("gdrnet", {**opts, "det_size": trained})
-    big = load_estimator("gdrnet", {**opts, "det_size": "480X640"})
+    opts = {"device": "cpu", "refine": {"segmenter": None}}
+
+    def detect(**settings):
+        return {**opts, "detect": {"conf": 0.0001, **settings}}
+
+    default = load_estimator("gdrnet", detect())
+    same = load_estimator("gdrnet", detect(input_hw=list(default.detector.cfg.input_hw)))
+    big = load_estimator("gdrnet", detect(input_hw=[480, 640]))
     assert big.detector.cfg.input_hw == (480, 640)
     rgb = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
     d0, d1, d2 = default.detect(rgb), same.detect(rgb), big.detect(rgb)
@@ -275,9 +281,9 @@ def test_the_detector_runs_at_another_input_size_on_request():
     # boxes in the image's px whatever the input: inside it (to a box's overhang)
     assert d2.bbox[:, :2].min() > -40
     assert (d2.bbox[:, :2] + d2.bbox[:, 2:]).max() < 680
-    for bad, needle in (("384", "det_size must be HxW"), ("100x512", "multiples of 32")):
+    for bad, needle in (([384], r"detect\.input_hw"), ([100, 512], "multiples of 32")):
         with pytest.raises(BopsurgError, match=needle):
-            load_estimator("gdrnet", {**opts, "det_size": bad})
+            load_estimator("gdrnet", detect(input_hw=bad))
 
 
 @pytest.mark.skipif(not (SHIPPED / "pose.pt").exists(), reason="no shipped model yet")
@@ -301,7 +307,7 @@ def test_the_demo_runs_the_main_job_end_to_end(tmp_path, capsys):
     # silently falls back to the direct decoding on every ROI, nor an uninformative one: a
     # mask of 0.5 everywhere also solves most ROIs, but at a median RE of 57 deg on these 18
     # frames (68 deg on the default demo's 146), against 22 deg (18) for the shipped mask
-    est = load_estimator("gdrnet", {"device": "cpu", "decode": "pnp"})
+    est = load_estimator("gdrnet", {"device": "cpu", "head": {"decode": "pnp"}})
     ds = BopDataset(tmp_path / "data", "test")
     R_est, R_gt = [], []
     for s in ds.scene_ids:
@@ -311,7 +317,7 @@ def test_the_demo_runs_the_main_job_end_to_end(tmp_path, capsys):
             if len(pred):
                 R_est.append(pred.R[0])
                 R_gt.append(scene.gt[im_id][0].R)
-    assert est.pnp_solved > 2 * est.pnp_fallback, est.report()
+    assert est.head.stats.pnp_solved > 2 * est.head.stats.pnp_fallback, est.report()
     assert np.median(metrics.re(np.array(R_est), np.array(R_gt))) < 40.0
 
     # the shipped end check on these frames' GT poses: at its margin it turns none of them,
@@ -326,9 +332,9 @@ def test_the_demo_runs_the_main_job_end_to_end(tmp_path, capsys):
                 rgb = load_rgb(scene.rgb_path(im_id))
                 image = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255
                 K = scene.camera[im_id].K
-                _, swap = est.ends(image, K, gt.R[None], gt.t[None])
+                _, swap = est.ends.judge(image, K, gt.R[None], gt.t[None])
                 turned += int(swap.sum())
-                lg = est.ends.logits(image, K, gt.R[None], gt.t[None])[0]
+                lg = est.ends.judge.logits(image, K, gt.R[None], gt.t[None])[0]
                 tip_wins.append(lg[1] > lg[0])
         assert turned == 0
         assert np.mean(tip_wins) >= 2 / 3, tip_wins
@@ -339,5 +345,5 @@ def test_predict_on_cuda(dataset, trained, tmp_path):
     det, pose = trained
     out = tmp_path / "res.csv"
     args = ["predict", str(dataset), "--out", str(out), "--detector", str(det), "--pose", str(pose)]
-    assert main([*args, "--device", "cuda", "--option", "conf=0", "--no-progress"]) == 0
+    assert main([*args, "--device", "cuda", "--option", "detect.conf=0", "--no-progress"]) == 0
     assert len(load_results(out)) > 0

@@ -19,18 +19,26 @@ from bopsurg.silhouette import project_silhouette
 torch = pytest.importorskip("torch")
 
 from bopsurg.models.checkpoint import save_checkpoint  # noqa: E402
-from bopsurg.models.estimator import REFINE_FIT, SHIPPED_SEGMENTER, create  # noqa: E402
+from bopsurg.models.estimator import create  # noqa: E402
+from bopsurg.models.predict_config import (  # noqa: E402
+    DepthSettings,
+    FitSettings,
+    RecropSettings,
+    RefineSettings,
+)
 from bopsurg.models.refine import (  # noqa: E402
     ArcModel,
     Evidence,
-    FitSettings,
     NeedleRefiner,
     NeedleSegNet,
     SegConfig,
+    Segmenter,
     refine_pose,
 )
-from bopsurg.models.refine.fit import _exp_so3, mirror_pose  # noqa: E402
+from bopsurg.models.refine.arc import _exp_so3, mirror_pose  # noqa: E402
 from bopsurg.models.refine.refiner import upsampled  # noqa: E402
+from bopsurg.models.stages.head import HeadPoses  # noqa: E402
+from bopsurg.models.stages.refine import RefineStage, grown_boxes  # noqa: E402
 from tests.models.test_depth_fit import tilt_mirror, wire_surface  # noqa: E402
 
 K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
@@ -92,7 +100,12 @@ def _mask_source(*planes: np.ndarray):
 
 
 #: The fit on image evidence alone (no prior towards the start).
-IMAGE_ONLY = FitSettings(prior_weight=0.0)
+#: The generic fit these tests were measured with: a 4 mm depth prior, the evidence at its
+#: grid, the out-of-domain guard on (the default is set for the shipped pose head instead).
+GENERIC = FitSettings(prior_mm=(1.5, 1.5, 4.0), evidence_upsample=1, min_explained=0.7)
+IMAGE_ONLY = dataclasses.replace(GENERIC, prior_weight=0.0)
+#: Options of an estimator without detector, refinement or end check.
+BARE = {"detector": None, "refine": {"segmenter": None}, "ends": {"classifier": None}}
 
 
 @pytest.mark.parametrize("view_deg", [30.0, 60.0])
@@ -100,7 +113,7 @@ def test_the_fit_recovers_a_perturbed_pose(view_deg):
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
     R0, t0 = _perturbed(R, t)
     assert metrics.te(t0[None], t[None])[0] == pytest.approx(3.0)
-    res = refine_pose(R0, t0, K, _evidence(R, t), ARC)
+    res = refine_pose(R0, t0, K, _evidence(R, t), ARC, GENERIC)
     assert res.improved
     assert res.cost < res.start_cost
     # the start is 3 mm / 5° off; the default fit lands within 1 mm and 4.5° (measured
@@ -116,11 +129,11 @@ def test_an_edge_on_needle_gets_part_of_its_depth_back(view_deg):
     # 3 mm start to under 2 mm (measured 1.46 mm at 3°, 1.53 mm at 10°)
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
     R0, t0 = _perturbed(R, t)
-    res = refine_pose(R0, t0, K, _evidence(R, t), ARC)
+    res = refine_pose(R0, t0, K, _evidence(R, t), ARC, GENERIC)
     assert metrics.te(res.t[None], t[None])[0] < 2.0
     # the wire's 3D points from a depth image fix it
     points = _visible_points(R, t, _depth_image(R, t))
-    res = refine_pose(R0, t0, K, _evidence(R, t), ARC, REFINE_FIT, points=points)
+    res = refine_pose(R0, t0, K, _evidence(R, t), ARC, FitSettings(), points=points)
     assert metrics.te(res.t[None], t[None])[0] < 0.3
 
 
@@ -132,7 +145,7 @@ def test_the_wire_tube_removes_the_edge_on_depth_bias(view_deg):
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
     ev = _evidence(R, t)
     tube = refine_pose(R, t, K, ev, ARC, IMAGE_ONLY)
-    line = refine_pose(R, t, K, ev, ARC, FitSettings(prior_weight=0.0, tube=False))
+    line = refine_pose(R, t, K, ev, ARC, dataclasses.replace(GENERIC, prior_weight=0.0, tube=False))
     te_tube = metrics.te(tube.t[None], t[None])[0]
     assert te_tube < 0.3
     assert te_tube < 0.5 * metrics.te(line.t[None], t[None])[0]
@@ -145,7 +158,7 @@ def test_the_tube_matches_the_rendered_wire_width():
 
     R, t = _pose(60.0, 20.0, (2.0, -3.0, 90.0))
     ev = _evidence(R, t)
-    settings = FitSettings()
+    settings = GENERIC
     _, r, _, _ = _Problem(ARC, ev, K, settings).evaluate(R[None], t[None], True)
     sides = r[0, ev.size + settings.samples :]
     assert abs(np.median(sides)) < 0.35
@@ -158,7 +171,7 @@ def test_an_occluded_arc_does_not_pull_the_fit_off_the_true_pose(view_deg, hidde
     # that keeps pulling occluded samples towards the visible part drifted 7.5-8.2 mm / 9-18°
     # on these frames
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
-    res = refine_pose(R, t, K, _evidence(R, t, hidden=hidden), ARC)
+    res = refine_pose(R, t, K, _evidence(R, t, hidden=hidden), ARC, GENERIC)
     assert metrics.te(res.t[None], t[None])[0] < 1.0
     assert metrics.re(res.R[None], R[None])[0] < 3.5
 
@@ -168,16 +181,16 @@ def test_a_mask_the_wire_cannot_explain_keeps_the_start_pose():
     R, t = _pose(30.0, 20.0, (2.0, -3.0, 90.0))
     R0, t0 = _perturbed(R, t)
     clean = _evidence(R, t)
-    assert refine_pose(R0, t0, K, clean, ARC).improved  # the guard passes a clean mask
+    assert refine_pose(R0, t0, K, clean, ARC, GENERIC).improved  # the guard passes a clean mask
     grid = np.zeros((160, 160), bool)
     rows = ((clean.points - clean.origin) / clean.step).round().astype(int)
     grid[rows[:, 1], rows[:, 0]] = True
     grid[20:140, 150:156] = True  # the groove: as many pixels as the needle, no arc
     groove = Evidence.from_mask(grid, clean.origin, clean.step, max_points=2000)
-    guarded = refine_pose(R0, t0, K, groove, ARC)
+    guarded = refine_pose(R0, t0, K, groove, ARC, GENERIC)
     assert not guarded.improved
     np.testing.assert_array_equal(guarded.t, t0)
-    off = refine_pose(R0, t0, K, groove, ARC, FitSettings(min_explained=0.0))
+    off = refine_pose(R0, t0, K, groove, ARC, dataclasses.replace(GENERIC, min_explained=0.0))
     assert off.improved  # without the guard the fit takes what it can get
 
 
@@ -185,7 +198,7 @@ def test_the_fit_is_deterministic():
     R, t = _pose(45.0, -30.0, (0.0, 0.0, 80.0))
     R0, t0 = _perturbed(R, t)
     ev = _evidence(R, t)
-    a, b = refine_pose(R0, t0, K, ev, ARC), refine_pose(R0, t0, K, ev, ARC)
+    a, b = refine_pose(R0, t0, K, ev, ARC, GENERIC), refine_pose(R0, t0, K, ev, ARC, GENERIC)
     assert np.array_equal(a.R, b.R)
     assert np.array_equal(a.t, b.t)
     assert a.cost == b.cost
@@ -194,7 +207,7 @@ def test_the_fit_is_deterministic():
 def test_an_empty_mask_keeps_the_start_pose():
     R, t = _pose(45.0, 0.0, (0.0, 0.0, 80.0))
     ev = Evidence.from_mask(np.zeros((160, 160), bool), np.zeros(2), 1.0)
-    res = refine_pose(R, t, K, ev, ARC)
+    res = refine_pose(R, t, K, ev, ARC, GENERIC)
     assert not res.improved
     assert np.array_equal(res.R, R)
     assert np.array_equal(res.t, t)
@@ -205,7 +218,7 @@ def test_noise_evidence_never_gives_nan(seed):
     rng = np.random.default_rng(seed)
     R, t = _pose(45.0, 0.0, (0.0, 0.0, 80.0))
     ev = Evidence.from_mask(rng.random((160, 160)) < 0.05, np.array([240.0, 160.0]), 1.0)
-    res = refine_pose(R, t, K, ev, ARC, FitSettings(mirror_start=True))
+    res = refine_pose(R, t, K, ev, ARC, dataclasses.replace(GENERIC, mirror_start=True))
     assert np.isfinite(res.R).all()
     assert np.isfinite(res.t).all()
     assert np.allclose(res.R @ res.R.T, np.eye(3), atol=1e-9)
@@ -238,16 +251,16 @@ def segmenter(tmp_path):
 
 
 def test_the_stage_refines_with_a_segmenter_and_counts(segmenter):
-    refiner = NeedleRefiner.from_checkpoint(segmenter, torch.device("cpu"))
+    stage = RefineStage.load(segmenter, RefineSettings(), torch.device("cpu"))
     R, t = _pose(45.0, 0.0, (0.0, 0.0, 80.0))
     image = torch.rand(1, 3, 480, 640, generator=torch.Generator().manual_seed(0))
     box = torch.tensor([[280.0, 200.0, 80.0, 60.0]])
-    R2, t2, changed, _ = refiner(image, K, box, R[None], t[None])
-    assert R2.shape == (1, 3, 3)
-    assert np.isfinite(R2).all()
-    assert np.isfinite(t2).all()
-    assert refiner.stats.refined + refiner.stats.kept == 1
-    assert changed[0] == refiner.stats.refined
+    out = stage(image, K, box, HeadPoses(R[None], t[None]))
+    assert out.R.shape == (1, 3, 3)
+    assert np.isfinite(out.R).all()
+    assert np.isfinite(out.t).all()
+    assert stage.stats.refined + stage.stats.kept == 1
+    assert (not np.array_equal(out.t[0], t)) == stage.stats.refined
 
 
 def _stage_on_silhouette(R, t, settings):
@@ -257,7 +270,7 @@ def _stage_on_silhouette(R, t, settings):
     ys, xs = np.nonzero(mask)
     box = torch.tensor([[xs.min(), ys.min(), np.ptp(xs), np.ptp(ys)]], dtype=torch.float32)
     R0, t0 = _perturbed(R, t)
-    _, t2, changed, _ = NeedleRefiner(_mask_source(mask), ARC, 192, settings=settings)(
+    _, t2, changed, _ = NeedleRefiner(_mask_source(mask), ARC, 192, fit=settings)(
         None, K, box, R0[None], t0[None]
     )
     return metrics.te(t2, t[None])[0], bool(changed[0])
@@ -279,7 +292,7 @@ def test_the_estimators_fit_recovers_perturbed_poses_from_fine_evidence():
     for i, (view, spin) in enumerate([(20, 0), (30, 40), (40, 80), (50, 15), (60, 120),
                                       (70, 200), (35, 300), (55, 250)]):  # fmt: skip
         pose = _pose(view, spin, (2.0 * (i % 3 - 1), -3.0 + i, 80.0 + 4 * i))
-        te, changed = _stage_on_silhouette(*pose, REFINE_FIT)
+        te, changed = _stage_on_silhouette(*pose, FitSettings())
         assert changed
         errors.append(te)
     assert np.median(errors) < 2.0
@@ -306,20 +319,22 @@ def test_finer_evidence_puts_the_outline_where_the_probability_crosses_a_half(ed
     assert upsampled(prob, 1, origin, step)[0] is prob
 
 
+def _with_segmenter(path, **refine):
+    return {**BARE, "device": "cpu", "refine": {"segmenter": str(path), **refine}}
+
+
 def test_estimator_options_switch_the_refinement(segmenter, tmp_path):
-    plain = create({"no_detector": "1", "refine": "none", "device": "cpu"})
-    assert plain.refiner is None
-    if not SHIPPED_SEGMENTER.exists():  # off by default until a segmenter ships
-        assert create({"no_detector": "1", "device": "cpu"}).refiner is None
-    with pytest.raises(BopsurgError, match="needs a needle segmenter"):
-        create({"no_detector": "1", "refine": "fit", "segmenter": str(tmp_path / "no.pt")})
-    fitted = create({"no_detector": "1", "segmenter": str(segmenter), "device": "cpu"})
-    assert fitted.refiner is not None
-    assert fitted.refiner.settings == REFINE_FIT  # the shipped head's fit, by default
-    guard = create({"segmenter": str(segmenter), "min_explained": "0.5", "device": "cpu"})
-    assert guard.refiner.settings == dataclasses.replace(REFINE_FIT, min_explained=0.5)
-    with pytest.raises(BopsurgError, match="refine must be one of"):
-        create({"refine": "icp"})
+    plain = create({**BARE, "device": "cpu"})
+    assert plain.refine is None
+    with pytest.raises(BopsurgError, match=r"no\.pt: the segmenter weights file does not exist"):
+        create(_with_segmenter(tmp_path / "no.pt"))
+    fitted = create(_with_segmenter(segmenter))
+    assert fitted.refine is not None
+    assert fitted.refine.refiner.settings == FitSettings()  # the one default
+    guard = create(_with_segmenter(segmenter, fit={"min_explained": 0.5}))
+    assert guard.refine.refiner.settings == FitSettings(min_explained=0.5)
+    with pytest.raises(BopsurgError, match=r"refine\.mask"):
+        create({**BARE, "refine": {"mask": "both"}})
 
 
 @pytest.fixture
@@ -337,7 +352,6 @@ def amodal_segmenter(tmp_path):
 
 
 def test_an_amodal_segmenter_gives_both_masks_unless_told(amodal_segmenter, segmenter):
-    from bopsurg.models.refine import Segmenter
 
     image = torch.rand(1, 3, 120, 160, generator=torch.Generator().manual_seed(0))
     centre, side = torch.tensor([[80.0, 60.0]]), torch.tensor([50.0])
@@ -355,10 +369,9 @@ def test_an_amodal_segmenter_gives_both_masks_unless_told(amodal_segmenter, segm
         Segmenter(segmenter, torch.device("cpu"), "full")
     with pytest.raises(BopsurgError, match="mask must be one of"):
         Segmenter(amodal_segmenter, torch.device("cpu"), "both")
-    est = create(
-        {"no_detector": "1", "segmenter": str(amodal_segmenter), "mask": "visible", "device": "cpu"}
-    )
-    assert est.refiner is not None
+    est = create(_with_segmenter(amodal_segmenter, mask="visible"))
+    assert est.refine is not None
+    assert est.refine.refiner.evidence.mask == "visible"
 
 
 def test_the_full_mask_keeps_a_half_hidden_arc_whole():
@@ -366,8 +379,8 @@ def test_the_full_mask_keeps_a_half_hidden_arc_whole():
     full mask (what an amodal segmenter predicts) pins the depth as if nothing hid it."""
     R, t = _pose(45.0, 10.0, (0.0, 0.0, 80.0))
     R0, t0 = _perturbed(R, t)
-    full = refine_pose(R0, t0, K, _evidence(R, t), ARC)
-    visible = refine_pose(R0, t0, K, _evidence(R, t, hidden=0.5), ARC)
+    full = refine_pose(R0, t0, K, _evidence(R, t), ARC, GENERIC)
+    visible = refine_pose(R0, t0, K, _evidence(R, t, hidden=0.5), ARC, GENERIC)
     te_full = metrics.te(full.t[None], t[None])[0]
     assert te_full < 1.0  # from 3 mm
     assert metrics.te(visible.t[None], t[None])[0] > 2 * te_full
@@ -395,10 +408,12 @@ def test_the_stage_fits_the_full_mask_and_explains_the_visible_one():
     box = torch.tensor([[xs.min(), ys.min(), np.ptp(xs), np.ptp(ys)]], dtype=torch.float32)
 
     R0, t0 = _perturbed(R, t)
-    _, t_both, changed, _ = NeedleRefiner(_mask_source(visible, full), ARC, 192)(
+    _, t_both, changed, _ = NeedleRefiner(_mask_source(visible, full), ARC, 192, fit=GENERIC)(
         None, K, box, R0[None], t0[None]
     )
-    t_vis = NeedleRefiner(_mask_source(visible), ARC, 192)(None, K, box, R0[None], t0[None]).t
+    t_vis = NeedleRefiner(_mask_source(visible), ARC, 192, fit=GENERIC)(
+        None, K, box, R0[None], t0[None]
+    ).t
     assert changed[0]
     te_both = metrics.te(t_both, t[None])[0]
     assert te_both < 2.0  # from 3 mm
@@ -444,10 +459,12 @@ def test_a_whole_frame_stage_asks_for_evidence_around_the_start_arc():
         return source(image, centre, side, size)
 
     R0, t0 = _perturbed(R, t)
-    _, t_whole, changed, _ = NeedleRefiner(recording, ARC, 192, whole=True)(
+    _, t_whole, changed, _ = NeedleRefiner(recording, ARC, 192, fit=GENERIC, whole=True)(
         None, K, box, R0[None], t0[None]
     )
-    NeedleRefiner(recording, ARC, 192)(None, K, box, R0[None], t0[None])  # the box alone
+    NeedleRefiner(recording, ARC, 192, fit=GENERIC)(
+        None, K, box, R0[None], t0[None]
+    )  # the box alone
     (c_whole, s_whole), (_, s_box) = asked
     half = 0.5 * s_whole[0]
     assert c_whole[0, 0] - half <= xs.min()
@@ -467,22 +484,20 @@ def test_visible_boxes_frame_each_roi_mask_in_image_px():
     masks = RoiMasks(
         prob, np.array([[100.0, 50.0], [0.0, 0.0], [10.0, 20.0]]), np.array([2.0, 1, 0.5])
     )
-    boxes = masks.visible_boxes()
+    boxes = masks.visible_boxes(0.5)
     # pixel-centre px: the first pixel's left edge is half a grid step before its centre
     np.testing.assert_allclose(boxes[0], [109.0, 69.0, 40.0, 20.0])
     assert np.isnan(boxes[1]).all()  # nothing seen
     np.testing.assert_allclose(boxes[2], [25.25, 19.75, 0.5, 0.5])
     one = RoiMasks(prob[:, 0], masks.origin, masks.step)  # a visible-only segmenter
-    np.testing.assert_allclose(one.visible_boxes()[0], boxes[0])
+    np.testing.assert_allclose(one.visible_boxes(0.5)[0], boxes[0])
     swapped = masks.replaced(
         np.array([False, True, False]), RoiMasks(prob[:1], masks.origin[:1], masks.step[:1])
     )
-    np.testing.assert_allclose(swapped.visible_boxes()[1], boxes[0])
+    np.testing.assert_allclose(swapped.visible_boxes(0.5)[1], boxes[0])
 
 
 def test_grown_boxes_take_the_union_only_where_it_grows_enough():
-    from bopsurg.models.estimator import grown_boxes
-
     boxes = np.array([[100.0, 100, 40, 20], [100, 100, 40, 20], [100, 100, 40, 20]])
     seen = np.array([[90.0, 105, 80, 10], [102, 98, 40, 24], [np.nan] * 4])
     grown, did = grown_boxes(boxes, seen, 1.1)
@@ -491,11 +506,11 @@ def test_grown_boxes_take_the_union_only_where_it_grows_enough():
     np.testing.assert_allclose(grown[1:], boxes[1:])  # 42/40 < 1.1, and nothing seen
 
 
-def _recrop_case(monkeypatch, extra=None):
+def _recrop_case(extra=None, fit=None, recrop=None):
     """A needle whose detection box holds its left 60 %, the stage on its exact silhouette
     (plus the foreground ``extra(whole, part)`` returns), and a pose head that answers every
-    box with the pose 3 mm / 5° off: (estimator, ``refine_needles`` arguments, GT t, the whole
-    needle's box, the detection box, the boxes the pose head saw)."""
+    box with the pose 3 mm / 5° off: (stage, its call's arguments, GT t, the whole needle's
+    box, the detection box, the boxes the pose head saw)."""
     R, t = _pose(20.0, 0.0, (0.0, 0.0, 80.0))  # wider than high: the box's width leads
     mask = _silhouette(R, t)
     ys, xs = np.nonzero(mask)
@@ -504,36 +519,35 @@ def _recrop_case(monkeypatch, extra=None):
     part[2] *= 0.6
     if extra is not None:
         mask = mask | extra(whole, part)
-    est = create({"no_detector": "1", "refine": "none", "device": "cpu"})
     R0, t0 = _perturbed(R, t)
     heads = []
 
-    def head_poses(head, image, K_b, box):
+    def head(box):
         heads.append(box.numpy().copy())
-        return np.repeat(R0[None], len(box), 0), np.repeat(t0[None], len(box), 0)
+        return HeadPoses(np.repeat(R0[None], len(box), 0), np.repeat(t0[None], len(box), 0))
 
-    monkeypatch.setattr(est, "_head_poses", head_poses)
-    stage = NeedleRefiner(_mask_source(mask), ARC, 192, settings=REFINE_FIT)
+    refiner = NeedleRefiner(_mask_source(mask), ARC, 192, fit=fit or FitSettings())
+    stage = RefineStage(refiner, recrop or RecropSettings())
     box = torch.tensor(part[None], dtype=torch.float32)
-    args = (est.heads[1], torch.zeros(1, 3, 480, 640), K, box, R0[None], t0[None], stage)
-    return est, args, t, whole, part, heads
+    args = (torch.zeros(1, 3, 480, 640), K, box, HeadPoses(R0[None], t0[None]), head)
+    return stage, args, t, whole, part, heads
 
 
-def test_the_stage_recrops_a_box_that_holds_part_of_the_needle(monkeypatch):
+def test_the_stage_recrops_a_box_that_holds_part_of_the_needle():
     """The detector boxed the needle's left part: the stage runs the pose head and the
     segmenter again on the box grown to all the segmenter saw, while that grows it enough."""
-    from bopsurg.models.estimator import RECROP_GROWTH
-
-    est, args, t, whole, part, heads = _recrop_case(monkeypatch)
-    _, t1, boxes, grew, _ = est.refine_needles(*args)
+    stage, args, t, whole, part, heads = _recrop_case()
+    growth = stage.recrop.growth
+    _, t1, boxes, grew, _ = stage(*args)
     assert grew[0]
     assert len(heads) == 2  # each pass sees a quarter of the box more on each side
-    # grown until the next pass would add less than RECROP_GROWTH: most of the needle
-    assert whole[2] / RECROP_GROWTH - 1.0 <= boxes[0, 2] <= whole[2] + 1.0
+    # grown until the next pass would add less than the growth: most of the needle
+    assert whole[2] / growth - 1.0 <= boxes[0, 2] <= whole[2] + 1.0
     np.testing.assert_allclose(boxes[0, [0, 1, 3]], whole[[0, 1, 3]], atol=1.5)
     np.testing.assert_allclose(heads[-1][0], boxes[0], atol=1e-3)  # the head saw that box
-    assert est.recropped == 1
-    _, t2, boxes2, grew2, _ = est.refine_needles(*args, recrop=0.0)
+    assert stage.stats.recropped == 1
+    off, args_off, *_ = _recrop_case(recrop=RecropSettings(growth=0.0))
+    _, t2, boxes2, grew2, _ = off(*args_off)
     # the whole silhouette pins the pose, its left part misleads the fit (here 1.8 against
     # 3.6 mm; the start is 3 mm off)
     te_whole, te_part = metrics.te(t1, t[None])[0], metrics.te(t2, t[None])[0]
@@ -541,29 +555,35 @@ def test_the_stage_recrops_a_box_that_holds_part_of_the_needle(monkeypatch):
     assert te_whole < te_part
     assert not grew2[0]
     np.testing.assert_allclose(boxes2[0], part, atol=1e-4)
-    assert est.recropped == 1
+    assert off.stats.recropped == 0
 
 
-def test_a_recrop_onto_what_the_wire_cannot_explain_is_undone(monkeypatch):
-    """The segmenter also marks a slab beside the needle (an instrument): the grown box holds
-    it, the fit there leaves it unexplained and is refused, and the first box's fit stands."""
+def _slab(whole, part):
+    """Foreground beside the box's right edge, as high as the needle (an instrument)."""
+    out = np.zeros((480, 640), bool)
+    x1 = int(part[0] + part[2])
+    out[int(whole[1]) : int(whole[1] + whole[3]), x1 + 2 : x1 + 120] = True
+    return out
 
-    def slab(whole, part):  # beside the box's right edge, as high as the needle
-        out = np.zeros((480, 640), bool)
-        x1 = int(part[0] + part[2])
-        out[int(whole[1]) : int(whole[1] + whole[3]), x1 + 2 : x1 + 120] = True
-        return out
 
-    est, args, _, _, part, heads = _recrop_case(monkeypatch, extra=slab)
-    stage = args[-1]
-    R1, t1, boxes, grew, _ = est.refine_needles(*args)
+def test_a_refused_recrop_is_undone_only_when_asked():
+    """The segmenter also marks a slab beside the needle: the grown box holds it, the fit
+    there leaves it unexplained and the out-of-domain guard refuses it. With
+    ``undo_unimproved`` the first box's fit stands; by default the re-crop's pose does."""
+    guard = FitSettings(min_explained=0.7)
+    undo = RecropSettings(undo_unimproved=True)
+    stage, args, _, _, part, heads = _recrop_case(_slab, guard, undo)
+    R1, t1, boxes, grew, _ = stage(*args)
     assert len(heads) >= 1  # it re-cropped ...
     assert not grew[0]  # ... and undid it
     np.testing.assert_allclose(boxes[0], part, atol=1e-4)
-    assert est.recropped == 0
+    assert stage.stats.recropped == 0
     assert stage.stats.refined + stage.stats.kept == 1  # one ROI, counted once
     assert np.isfinite(R1).all()
     assert np.isfinite(t1).all()
+    kept, args_kept, *_ = _recrop_case(_slab, guard)
+    assert kept(*args_kept).grown[0]
+    assert kept.stats.recropped == 1
 
 
 # --- RGB-D: the depth term ----------------------------------------------------------------
@@ -593,10 +613,10 @@ def test_depth_points_settle_the_tilt_the_image_cannot(view_deg):
     R, t = _pose(view_deg, 20.0, (2.0, -3.0, 90.0))
     start = _exp_so3(np.array([0.0, 0.0, 0.03])) @ tilt_mirror(R, t)  # the image fit's twin
     ev = _evidence(R, t)
-    rgb = refine_pose(start, t, K, ev, ARC)
+    rgb = refine_pose(start, t, K, ev, ARC, GENERIC)
     assert metrics.re(rgb.R[None], R[None])[0] > 20.0  # the image keeps the wrong tilt
     points = _visible_points(R, t, _depth_image(R, t))
-    rgbd = refine_pose(start, t, K, ev, ARC, points=points)
+    rgbd = refine_pose(start, t, K, ev, ARC, GENERIC, points=points)
     assert rgbd.improved
     # the prior (8° around the wrong start) holds it a little: measured 4.9° / 3.5°, 0.71 /
     # 0.47 mm (the stage's fit without the prior does better where it matters, below)
@@ -614,41 +634,43 @@ def test_the_rgbd_stage_leaves_a_lost_network_pose_for_the_points():
     depth = _depth_image(R, t)
     ys, xs = np.nonzero(mask)
     box = torch.tensor([[xs.min(), ys.min(), np.ptp(xs), np.ptp(ys)]], dtype=torch.float32)
-    stage = NeedleRefiner(_mask_source(mask), ARC, 192, settings=REFINE_FIT)
+    stage = NeedleRefiner(_mask_source(mask), ARC, 192)
     observed = stage.observe(None, K, box, R[None], t[None])
     R0, t0 = _perturbed(R, t)
     R1, t1, _, unheld = stage.fit(observed, K, R0[None], t0[None], depth)
-    assert stage.stats.unheld == 0
     assert not unheld[0]
     assert metrics.re(R1, R[None])[0] < 3.0
     assert metrics.te(t1, t[None])[0] < 0.3
-    held = dataclasses.replace(REFINE_FIT, prior_weight=50.0)
-    stage = NeedleRefiner(_mask_source(mask), ARC, 192, settings=held)
+    held = FitSettings(prior_weight=50.0)
+    stage = NeedleRefiner(_mask_source(mask), ARC, 192, fit=held)
     lost_R = _exp_so3(np.array([0.0, np.deg2rad(40.0), 0.0])) @ R  # 40° off, 8 mm too far
     far = t + np.array([0.0, 0.0, 8.0])
     R2, t2, changed, unheld = stage.fit(observed, K, lost_R[None], far[None], depth)
     assert changed[0]
-    assert unheld[0]  # flagged: the end check then ignores the head's ends
-    assert stage.stats.unheld == 1
+    assert unheld[0]  # flagged: the end check may judge it at its own margin
     assert metrics.re(R2, R[None])[0] < 5.0  # from 40°
     assert metrics.te(t2, t[None])[0] < 1.0  # from 8 mm (the strong prior holds each start)
-    # a network judged lost (its pose puts too few points near its wire: 8 % here) needs the
-    # smaller lead (depth_unheld_share_lost); with a lead no fit can reach otherwise, only
-    # the network judged lost leaves its pose to the fit without its prior
-    unreachable = dataclasses.replace(held, depth_unheld_share=1.5)
-    for lost_below, taken in ((0.5, True), (0.05, False)):
-        settings = dataclasses.replace(unreachable, depth_lost_share=lost_below)
-        stage = NeedleRefiner(_mask_source(mask), ARC, 192, settings=settings)
+    # with ``lost_share`` a network judged lost (its pose puts too few points near its wire:
+    # 8 % here) needs the smaller lead (``unheld_share_lost``); with a lead no fit can reach
+    # otherwise, only the network judged lost leaves its pose to the fit without its prior;
+    # by default (``lost_share`` 0) no network is judged lost, and without ``unheld`` the fit
+    # without the prior is not run
+    unreachable = DepthSettings(unheld_share=1.5)
+    for depth_s, taken in (
+        (dataclasses.replace(unreachable, lost_share=0.5), True),
+        (dataclasses.replace(unreachable, lost_share=0.05), False),
+        (unreachable, False),
+        (DepthSettings(unheld=False), False),
+    ):
+        stage = NeedleRefiner(_mask_source(mask), ARC, 192, fit=held, depth=depth_s)
         assert stage.fit(observed, K, lost_R[None], far[None], depth).unheld[0] == taken
 
 
 def test_estimator_depth_option(segmenter):
-    rgbd = create({"no_detector": "1", "segmenter": str(segmenter), "device": "cpu"})
+    rgbd = create(_with_segmenter(segmenter))
     assert rgbd.uses_depth is True  # the default: depth when bopsurg predict gives it
-    rgb = create(
-        {"no_detector": "1", "segmenter": str(segmenter), "depth": "none", "device": "cpu"}
-    )
+    rgb = create(_with_segmenter(segmenter, depth={"mode": "none"}))
     assert rgb.uses_depth is False
-    assert create({"no_detector": "1", "refine": "none", "device": "cpu"}).uses_depth is False
-    with pytest.raises(BopsurgError, match="depth must be one of"):
-        create({"no_detector": "1", "segmenter": str(segmenter), "depth": "icp"})
+    assert create({**BARE, "device": "cpu"}).uses_depth is False
+    with pytest.raises(BopsurgError, match=r"refine\.depth\.mode"):
+        create(_with_segmenter(segmenter, depth={"mode": "icp"}))

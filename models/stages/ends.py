@@ -1,0 +1,57 @@
+"""Stage 4: the needle-end check: a classifier looks at both ends of each refined needle pose
+and turns the pose end for end where the tail looks more like a tip than the tip does, by
+more than a logit margin (the pose head's own say on which end is the tip)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bopsurg.models.predict_config import EndsSettings
+from bopsurg.models.refine.ends import EndJudge, load_judge
+
+
+class EndStage:
+    """The end classifier and its margins.
+
+    Args:
+        judge: The loaded classifier (:class:`EndJudge`).
+        settings: The margins.
+    """
+
+    def __init__(self, judge: EndJudge, settings: EndsSettings) -> None:
+        self.judge, self.settings = judge, settings
+
+    @classmethod
+    def load(cls, path: str | Path, settings: EndsSettings, device: torch.device) -> EndStage:
+        """The stage on the ``needle_ends`` checkpoint ``path``."""
+        return cls(load_judge(path, device, settings.margin), settings)
+
+    def __call__(
+        self, image: torch.Tensor, K: np.ndarray, R: np.ndarray, t: np.ndarray, unheld: np.ndarray
+    ) -> np.ndarray:
+        """The rotations (n, 3, 3), turned end for end where the classifier says so.
+
+        Args:
+            image: (1, 3, H, W) float RGB in [0, 1].
+            K: (3, 3) intrinsics, px.
+            R: (n, 3, 3) rotations; t: (n, 3) translations, mm.
+            unheld: (n,) bool: poses the RGB-D fit took without the pose head's prior (judged
+                at :attr:`EndsSettings.unheld_margin` when that is set).
+        """
+        s = self.settings
+        margin = np.full(len(R), s.margin)
+        if s.unheld_margin is not None:
+            margin = np.where(unheld, s.unheld_margin, margin)
+        R_out: np.ndarray = self.judge(image, K, R, t, margin)[0]
+        return R_out
+
+    def report(self) -> str:
+        """What the end check did, for ``bopsurg predict``."""
+        st = self.judge.stats
+        return (
+            f"end check (margin {self.settings.margin:g}) turned {st.swapped} of {st.checked} "
+            "needles end for end"
+        )

@@ -1,0 +1,161 @@
+"""Stage 3: the needle's pose fitted to full-resolution evidence (RGB, and RGB-D with depth).
+
+Per needle ROI: the segmenter's masks around the box; where the visible mask runs past the
+box (:class:`RecropSettings`), the pose head and the segmenter run again on the union of the
+box and the mask's box; then the arc fit (:func:`bopsurg.models.refine.fit.refine_pose`) from
+the pose head's pose, with the mask's depth points when there is a depth image.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from bopsurg.models.predict_config import RecropSettings, RefineSettings
+from bopsurg.models.refine.refiner import NeedleRefiner, Segmenter
+from bopsurg.models.stages.head import HeadPoses
+
+#: Re-runs the pose head on boxes (n, 4) (x, y, w, h), pixel-centre px, of the same image.
+HeadFn = Callable[[torch.Tensor], HeadPoses]
+
+
+class Refinement(NamedTuple):
+    """The refined poses of n needle ROIs.
+
+    Attributes:
+        R: (n, 3, 3) rotations.
+        t: (n, 3) translations, mm.
+        boxes: (n, 4) the boxes the poses come from (x, y, w, h), pixel-centre px.
+        grown: (n,) bool: the box grew to the needle's visible mask (a re-crop).
+        unheld: (n,) bool: the RGB-D fit without the pose head's prior was kept.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    boxes: np.ndarray
+    grown: np.ndarray
+    unheld: np.ndarray
+
+
+@dataclass
+class RefineStats:
+    """Needle poses the fit changed or left as the pose head gave them, re-cropped ROIs, and
+    RGB-D fits kept without the pose head's prior."""
+
+    refined: int = 0
+    kept: int = 0
+    recropped: int = 0
+    unheld: int = 0
+
+
+def grown_boxes(
+    boxes: np.ndarray, seen: np.ndarray, min_growth: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes grown to hold what the segmenter saw of each object.
+
+    Args:
+        boxes: (n, 4) boxes (x, y, w, h), px (one convention for both arguments).
+        seen: (n, 4) boxes of the segmenter's visible masks, NaN rows where it saw nothing.
+        min_growth: grow a box only where the union's longer side is at least this multiple
+            of the box's.
+
+    Returns:
+        The boxes (n, 4), the union where it grew enough, and which did (n,) bool.
+    """
+    boxes, seen = np.asarray(boxes, float), np.asarray(seen, float)
+    lo = np.minimum(boxes[:, :2], seen[:, :2])
+    hi = np.maximum(boxes[:, :2] + boxes[:, 2:], seen[:, :2] + seen[:, 2:])
+    union = np.concatenate([lo, hi - lo], axis=1)
+    grow = np.isfinite(seen).all(axis=1)
+    grow &= union[:, 2:].max(axis=1) >= min_growth * boxes[:, 2:].max(axis=1)
+    return np.where(grow[:, None], union, boxes), grow
+
+
+class RefineStage:
+    """Segment, re-crop and fit the needle ROIs of one image.
+
+    Args:
+        refiner: The segmenter and the fits (:class:`NeedleRefiner`).
+        recrop: When to run a ROI again on its grown box.
+    """
+
+    def __init__(self, refiner: NeedleRefiner, recrop: RecropSettings) -> None:
+        self.refiner, self.recrop = refiner, recrop
+        self.stats = RefineStats()
+
+    @classmethod
+    def load(cls, path: str | Path, settings: RefineSettings, device: torch.device) -> RefineStage:
+        """The stage on the segmenter checkpoint ``path``."""
+        seg = Segmenter(path, device, settings.mask)
+        return cls(NeedleRefiner.for_segmenter(seg, settings.fit, settings.depth), settings.recrop)
+
+    def __call__(
+        self,
+        image: torch.Tensor,
+        K: np.ndarray,
+        box_xywh: torch.Tensor,
+        poses: HeadPoses,
+        head: HeadFn | None = None,
+        depth: np.ndarray | None = None,
+    ) -> Refinement:
+        """The refined poses of needle boxes (n, 4) (x, y, w, h), pixel-centre px.
+
+        Args:
+            image: (1, 3, H, W) float RGB in [0, 1].
+            K: (3, 3) intrinsics, px.
+            box_xywh: The boxes.
+            poses: The pose head's poses of the boxes.
+            head: Re-runs the pose head on grown boxes (None: no re-crops).
+            depth: (H, W) depth image, mm (0: no reading), or None: RGB only.
+        """
+        K = np.asarray(K, float)
+        refiner = self.refiner
+        masks = refiner.observe(image, K, box_xywh, poses.R, poses.t)
+        boxes = box_xywh.detach().cpu().double().numpy()
+        first = (poses.R, poses.t, masks, boxes)  # what an undone re-crop falls back to
+        R, t = poses.R.copy(), poses.t.copy()  # the re-crops write into these
+        grew = np.zeros(len(R), dtype=bool)
+        todo = np.ones(len(R), dtype=bool)  # ROIs whose box may still grow
+        passes = self.recrop.passes if self.recrop.growth > 0 and head is not None else 0
+        for _ in range(passes):
+            grown, redo = grown_boxes(boxes, refiner.visible_boxes(masks), self.recrop.growth)
+            redo &= todo
+            if not redo.any() or head is None:
+                break
+            # the needle runs past its box: pose head and segmenter again on all that was seen
+            g = torch.as_tensor(grown[redo], dtype=box_xywh.dtype, device=box_xywh.device)
+            R[redo], t[redo] = head(g)
+            masks = masks.replaced(redo, refiner.observe(image, K, g, R[redo], t[redo]))
+            boxes, todo, grew = np.where(redo[:, None], grown, boxes), redo, grew | redo
+        out = refiner.fit(masks, K, R, t, depth)
+        R, t, changed, unheld = out.R, out.t, out.changed, out.unheld
+        back = grew & ~changed if self.recrop.undo_unimproved else np.zeros_like(grew)
+        if back.any():  # the re-crop's fit was refused: the first box's fit instead
+            R0, t0, masks0, boxes0 = first
+            redo = refiner.fit(masks0.subset(back), K, R0[back], t0[back], depth)
+            R[back], t[back], unheld[back] = redo.R, redo.t, redo.unheld
+            changed[back], boxes[back], grew[back] = redo.changed, boxes0[back], False
+        self._count(changed, grew, unheld)
+        return Refinement(R, t, boxes, grew, unheld)
+
+    def _count(self, changed: np.ndarray, grew: np.ndarray, unheld: np.ndarray) -> None:
+        st = self.stats
+        st.refined += int(changed.sum())
+        st.kept += int((~changed).sum())
+        st.recropped += int(grew.sum())
+        st.unheld += int(unheld.sum())
+
+    def report(self) -> str:
+        """What the refinement did, for ``bopsurg predict``."""
+        st = self.stats
+        text = f"refinement improved {st.refined} needle poses, {st.kept} kept the network's"
+        if self.recrop.growth > 0:
+            text += f", {st.recropped} re-cropped to their whole mask"
+        if st.unheld:
+            text += f"; RGB-D fits without the head's prior: {st.unheld}"
+        return text
