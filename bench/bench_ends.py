@@ -5,8 +5,8 @@ its tail looks more like a tip than the patch at its tip, by a margin (logits). 
 turns a right pose is a new error of 180 deg; one that turns a flipped pose mends it. This
 runs, as a user would:
 
-  1. bopsurg predict DATA --option ends=none          (the pose without the check)
-  2. bopsurg predict DATA --option ends=CKPT --option ends_margin=M   for each M in --margins
+  1. bopsurg predict DATA --option ends.classifier=none   (the pose without the check)
+  2. bopsurg predict DATA --option ends.classifier=CKPT --option ends.margin=M   for each M
   3. bopsurg eval of each
 
 and prints, per run: the paper's medians, the mean RE, the share of needles with RE > 90 deg
@@ -73,9 +73,11 @@ def main() -> None:
     extra = predict_options(args.predict_option)
     if args.oracle_boxes:
         extra += ["--boxes", str(oracle_boxes(args.data, args.split, out / "oracle_boxes.json"))]
-    runs = {"ends=none": ["--option", "ends=none"]}
+    runs = {"ends=none": ["--option", "ends.classifier=none"]}
     for m in margins:
-        runs[f"margin {m:g}"] = ["--option", f"ends={args.ends}", "--option", f"ends_margin={m}"]
+        runs[f"margin {m:g}"] = [
+            "--option", f"ends.classifier={args.ends}", "--option", f"ends.margin={m}"
+        ]  # fmt: skip
 
     report: dict = {
         "data": str(args.data), "split": args.split, "ends": str(args.ends),

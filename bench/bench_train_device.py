@@ -73,7 +73,8 @@ def check_on_cpu(runs: Path, dataset: Path, split: str, device: str) -> str:
         "detector": str(runs / f"detector_{device}" / "detector.pt"),
         "pose": str(runs / f"pose_{device}" / "pose.pt"),
         "device": "cpu",
-        "refine": "none",
+        "refine": {"segmenter": None},
+        "ends": {"classifier": None},
     }
     est = load_estimator("gdrnet", options)
     ds = BopDataset(dataset, split)

@@ -62,7 +62,7 @@ def main() -> None:
     ap.add_argument("--model", default=None, help="its needle PLY (default: SRC/Needle.ply)")
     ap.add_argument("--out", required=True, help="work folder (rewritten)")
     ap.add_argument("--device", default="cpu")
-    add_predict_option(ap, "decode=pnp")
+    add_predict_option(ap, "head.decode=pnp")
     args = ap.parse_args()
     src, out = Path(args.src), Path(args.out)
     model = Path(args.model) if args.model else src / "Needle.ply"
