@@ -234,12 +234,23 @@ def test_readme_extras_table_is_pyprojects():
     assert not unknown, f"the README lists extras pyproject.toml lacks: {sorted(unknown)}"
 
 
-def test_readme_links_to_files_that_exist():
+REPO_FILE = "https://github.com/bopsurg/bopsurg/blob/main/"
+SITE = "https://bopsurg.github.io/bopsurg/"
+
+
+def test_readme_links_to_files_and_pages_that_exist():
+    # The README is PyPI's page too, so it links absolutely: to the repository's files and
+    # to the docs site's pages, which must exist in this checkout.
     text = (ROOT / "README.md").read_text()
     for target in re.findall(r"\]\(([^)#\s]+)\)", text):
-        if "://" in target or target in PENDING_FILES:
-            continue
-        assert (ROOT / target).exists(), f"README.md links to a missing file: {target}"
+        if target.startswith(REPO_FILE):
+            path = target.removeprefix(REPO_FILE)
+            assert path in PENDING_FILES or (ROOT / path).exists(), f"no file {path}"
+        elif target.startswith(SITE):
+            page = target.removeprefix(SITE).strip("/") or "index"
+            assert (DOCS / f"{page}.md").exists(), f"the README links to no page: {target}"
+        else:
+            assert "://" in target, f"README.md: link {target} is relative (broken on PyPI)"
 
 
 def _nav_pages(node: object) -> list[str]:
