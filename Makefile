@@ -8,7 +8,7 @@ DEMO_OUT ?= demo_out
 # pytest worker processes (pytest-xdist): every core; TEST_WORKERS=0 runs in one process
 TEST_WORKERS ?= auto
 
-.PHONY: demo test test-after-ray lint bench venv clean
+.PHONY: demo test test-after-ray lint bench docs venv clean
 
 venv: $(STAMP)
 
@@ -46,5 +46,11 @@ bench: $(STAMP)
 	$(BIN)/python bench/bench_metrics.py
 	$(BIN)/python bench/bench_eval.py
 
+# The documentation site (docs/, mkdocs.yml) into site/; --strict fails on any warning
+# (a broken link, a missing page, a docstring the API reference cannot read).
+docs: $(STAMP)
+	test -x $(BIN)/mkdocs || $(BIN)/python -m pip install -q -c constraints.txt -e ".[docs]"
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
+
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info
+	rm -rf $(VENV) $(DEMO_OUT) build site *.egg-info
