@@ -224,7 +224,7 @@ class DepthSettings:
     weight: float = 16.0
     scale_mm: float = 0.5
     points: PointsFitSettings = field(default_factory=PointsFitSettings)
-    unheld: bool = True
+    unheld: bool = False
     inlier_mm: float = 0.5
     unheld_share: float = 0.15
     lost_mm: float = 1.5

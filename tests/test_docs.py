@@ -279,6 +279,12 @@ YAML_BLOCKS = [b for b in ALL_BLOCKS if b.lang in ("yaml", "yml")]
 def test_yaml_block_is_a_valid_config(block, tmp_path):
     doc = yaml.safe_load(block.code)
     assert isinstance(doc, dict), f"{block.where}: not a YAML mapping"
+    if block.code.lstrip().startswith("# bopsurg predict"):  # a prediction config
+        from bopsurg.models.config_tree import from_mapping
+        from bopsurg.models.predict_config import PredictConfig
+
+        from_mapping(PredictConfig, doc, block.where)  # raises naming a bad key
+        return
     if not set(doc) <= TRAIN_CONFIG_KEYS:
         return  # not a training config: parsing is the check
     if importlib.util.find_spec("torch") is None:

@@ -642,7 +642,8 @@ def test_the_rgbd_stage_leaves_a_lost_network_pose_for_the_points():
     assert metrics.re(R1, R[None])[0] < 3.0
     assert metrics.te(t1, t[None])[0] < 0.3
     held = FitSettings(prior_weight=50.0)
-    stage = NeedleRefiner(_mask_source(mask), ARC, 192, fit=held)
+    unheld = DepthSettings(unheld=True)  # off by default: it changed no pose on VAL1
+    stage = NeedleRefiner(_mask_source(mask), ARC, 192, fit=held, depth=unheld)
     lost_R = _exp_so3(np.array([0.0, np.deg2rad(40.0), 0.0])) @ R  # 40° off, 8 mm too far
     far = t + np.array([0.0, 0.0, 8.0])
     R2, t2, changed, unheld = stage.fit(observed, K, lost_R[None], far[None], depth)
@@ -655,12 +656,12 @@ def test_the_rgbd_stage_leaves_a_lost_network_pose_for_the_points():
     # otherwise, only the network judged lost leaves its pose to the fit without its prior;
     # by default (``lost_share`` 0) no network is judged lost, and without ``unheld`` the fit
     # without the prior is not run
-    unreachable = DepthSettings(unheld_share=1.5)
+    unreachable = DepthSettings(unheld=True, unheld_share=1.5)
     for depth_s, taken in (
         (dataclasses.replace(unreachable, lost_share=0.5), True),
         (dataclasses.replace(unreachable, lost_share=0.05), False),
         (unreachable, False),
-        (DepthSettings(unheld=False), False),
+        (DepthSettings(), False),
     ):
         stage = NeedleRefiner(_mask_source(mask), ARC, 192, fit=held, depth=depth_s)
         assert stage.fit(observed, K, lost_R[None], far[None], depth).unheld[0] == taken
