@@ -540,7 +540,7 @@ class PyBulletBackend(ClosesOnExit):
         for k, name in enumerate(assets.annotated):
             self._lut[self._bodies[name] + 1] = k + 1
         self._poses = {name: np.eye(4) for name in assets.parts}
-        state = default_state()
+        state = default_state(scene.layout.arms)
         self._jaws = state.jaws
         needle = scene.needle_model_pose(state.needle_pose)
         self._apply_poses(part_poses(scene.layout, state.psm_joints, state.jaws, needle))
@@ -610,9 +610,10 @@ class PyBulletBackend(ClosesOnExit):
         needle = np.asarray(state.needle_pose, dtype=np.float64)
         if needle.shape != (4, 4):
             raise ValueError(f"needle_pose must be 4x4, got shape {needle.shape}")
-        unknown = sorted(set(state.jaws) - set(ARMS))
+        arms = scene.layout.arms
+        unknown = sorted(set(state.jaws) - set(arms))
         if unknown:
-            raise ValueError(f"unknown arm {unknown[0]!r} in jaws; expected one of {ARMS}")
+            raise ValueError(f"unknown arm {unknown[0]!r} in jaws; expected one of {arms}")
         jaws = dict(self._jaws)
         jaws.update({k: float(v) for k, v in state.jaws.items()})
         poses = part_poses(scene.layout, state.psm_joints, jaws, scene.needle_model_pose(needle))
