@@ -84,15 +84,37 @@ def read_bag(
     if bag.is_file() and bag.suffix != ".bag":
         raise BagError("a ROS1 bag file name must end in .bag (ROS2 bags are folders)", path=bag)
     tmap = load_topic_map(topic_map)
-    default_ts = typestore(Stores.ROS2_HUMBLE, tmap)
-    raw: dict[tuple[str, str | None], tuple[Source, list[int], list[Any]]] = {}
+    raw, meta_json = _read_streams(bag, tmap, joint_source)
+    meta: dict[str, Any] = {}
+    if meta_json is not None:
+        try:
+            meta = dict(json.loads(meta_json))
+        except (ValueError, TypeError) as err:
+            raise BagError(f"meta message is not a JSON object ({err})", path=bag) from err
+    robot = tmap.robot_of(meta_json is not None)
+    if kinematics is None:
+        from bopsurg.generators.dvrk_tools import dvrk_psm
+
+        kinematics = SIMULATOR_PSM if robot == "simulator" else dvrk_psm()
+    rec = _assemble(bag, raw, meta, kinematics if check_limits else None, limit_tol)
+    rec.robot = robot
+    return rec
+
+
+RawStreams = dict[tuple[str, str | None], tuple[Source, list[int], list[Any]]]
+
+
+def _read_streams(
+    bag: Path, tmap: TopicMap, joint_source: str | None
+) -> tuple[RawStreams, str | None]:
+    """Every chosen stream's (source, stamps ns, values) and the meta message's text."""
+    raw: RawStreams = {}
     meta_json: str | None = None
     try:
-        with AnyReader([bag], default_typestore=default_ts) as reader:
-            chosen = choose_sources(reader, tmap, bag, joint_source)
+        with AnyReader([bag], default_typestore=typestore(Stores.ROS2_HUMBLE, tmap)) as reader:
             by_topic: dict[str, list[Source]] = {}
-            for src in chosen:  # one topic may feed several streams (AMBF baselink State)
-                by_topic.setdefault(src.topic, []).append(src)
+            for src in choose_sources(reader, tmap, bag, joint_source):
+                by_topic.setdefault(src.topic, []).append(src)  # AMBF: one topic, 2 streams
                 raw[src.key] = (src, [], [])
             conns = [c for c in reader.connections if c.topic in by_topic]
             for conn, t_bag, data in reader.messages(connections=conns):
@@ -116,20 +138,7 @@ def read_bag(
         raise
     except Exception as err:  # rosbags raises many types for truncated or corrupt bags
         raise BagError(f"cannot read bag ({_brief(err)})", path=bag) from err
-    meta: dict[str, Any] = {}
-    if meta_json is not None:
-        try:
-            meta = dict(json.loads(meta_json))
-        except (ValueError, TypeError) as err:
-            raise BagError(f"meta message is not a JSON object ({err})", path=bag) from err
-    robot = tmap.robot_of(meta_json is not None)
-    if kinematics is None:
-        from bopsurg.generators.dvrk_tools import dvrk_psm
-
-        kinematics = SIMULATOR_PSM if robot == "simulator" else dvrk_psm()
-    rec = _assemble(bag, raw, meta, kinematics if check_limits else None, limit_tol)
-    rec.robot = robot
-    return rec
+    return raw, meta_json
 
 
 def _brief(err: BaseException) -> str:
@@ -266,7 +275,7 @@ def _limits(kinematics: PsmKinematics) -> dict[str, tuple[F64, Sequence[str]]]:
 
 def _assemble(
     bag: Path,
-    raw: Mapping[tuple[str, str | None], tuple[Source, list[int], list[Any]]],
+    raw: RawStreams,
     meta: dict[str, Any],
     kinematics: PsmKinematics | None,
     limit_tol: float,

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from bopsurg.generators.kinematics import PsmKinematics
 
 F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
 Stream = tuple[F64, F64]
 
 #: Largest stamp difference between a joint sample and a pose sample that pair, s.
@@ -57,22 +58,20 @@ class FkCheck:
         )
 
 
-def pair_by_stamp(t_a: F64, t_b: F64, tolerance: float = PAIR_TOLERANCE) -> tuple[F64, F64]:
+def pair_by_stamp(t_a: F64, t_b: F64, tolerance: float = PAIR_TOLERANCE) -> tuple[I64, I64]:
     """Indices (ia, ib) of the samples of two increasing time series that pair: each sample
     of ``t_a`` with the nearest of ``t_b`` when within ``tolerance`` (s)."""
     t_a, t_b = np.asarray(t_a, np.float64), np.asarray(t_b, np.float64)
-    if len(t_a) == 0 or len(t_b) == 0:
-        empty = np.zeros(0, dtype=np.int64)
-        return empty, empty
-    j = (
-        np.clip(np.searchsorted(t_b, t_a), 1, len(t_b) - 1)
-        if len(t_b) > 1
-        else np.zeros(len(t_a), dtype=np.int64)
-    )
+    j: I64 = np.zeros(len(t_a), dtype=np.int64)
+    if len(t_b) == 0:
+        return j[:0], j[:0]
     if len(t_b) > 1:
-        j = np.where(np.abs(t_b[j - 1] - t_a) <= np.abs(t_b[j] - t_a), j - 1, j)
+        after = np.clip(np.searchsorted(t_b, t_a), 1, len(t_b) - 1).astype(np.int64)
+        nearer_before = np.abs(t_b[after - 1] - t_a) <= np.abs(t_b[after] - t_a)
+        j = np.where(nearer_before, after - 1, after)
     ok = np.abs(t_b[j] - t_a) <= tolerance
-    return np.flatnonzero(ok), j[ok]
+    ia: I64 = np.flatnonzero(ok).astype(np.int64)
+    return ia, j[ok]
 
 
 def register_rigid(src: F64, dst: F64) -> tuple[F64, F64]:
