@@ -36,6 +36,10 @@ from bopsurg.generators.topic_map import (
 
 F64 = NDArray[np.float64]
 
+#: Slack on the limits for a real robot's joints, rad or m: measured joints of a real arm
+#: overshoot its software limits a little; far outside them means wrong units or order.
+REAL_LIMIT_SLACK = 0.05
+
 
 def read_bag(
     path: str | Path,
@@ -56,7 +60,8 @@ def read_bag(
         path: The ``.bag`` file, the ROS2 bag folder (or a ``.db3`` / ``.mcap`` file in it).
         topic_map: Built-in map name (``"crtk"``, ``"ambf"``) or TOML path.
         check_limits: Reject joints and jaws outside the kinematics' limits.
-        limit_tol: Slack on the limits (rad or m).
+        limit_tol: Slack on the limits (rad or m); at least :data:`REAL_LIMIT_SLACK` for a
+            real robot's recording.
         joint_source: ``measured`` or ``setpoint``: take the PSM joints, jaws and tool-tip
             poses only from topics of that kind (``.../setpoint_js`` vs the others); None:
             the first candidate present.
@@ -96,7 +101,8 @@ def read_bag(
         from bopsurg.generators.dvrk_tools import dvrk_psm
 
         kinematics = SIMULATOR_PSM if robot == "simulator" else dvrk_psm()
-    rec = _assemble(bag, raw, meta, kinematics if check_limits else None, limit_tol)
+    tol = limit_tol if robot == "simulator" else max(limit_tol, REAL_LIMIT_SLACK)
+    rec = _assemble(bag, raw, meta, kinematics if check_limits else None, tol)
     rec.robot = robot
     return rec
 
@@ -259,7 +265,8 @@ def _extract(msg: Any, src: Source, bag: Path, index: int) -> F64:
         raise BagError(
             f"scale has {len(src.scale)} elements for {arr.size} values", path=bag, field=src.topic
         )
-    return arr * np.asarray(src.scale)
+    scaled: F64 = arr * np.asarray(src.scale)
+    return scaled
 
 
 _EXPECTED = {"psm_joints": 6, "jaw": 1, "ecm_joints": 4}

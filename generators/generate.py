@@ -376,35 +376,16 @@ def generate_dataset(
         Counts of what was done.
     """
     settings = settings or GenerateSettings()
-    if settings.replays < 1:
-        raise InputError("must be >= 1", field="replays")
-    if workers < 1:
-        raise InputError("must be >= 1", field="workers")
-    if settings.domain not in DOMAINS:
-        raise InputError(f"must be one of {', '.join(DOMAINS)}", field="domain")
-    bag_paths = [str(b) for b in bags]
-    if not bag_paths:
-        raise InputError("no bag given")
-    for b in bag_paths:
-        if not Path(b).exists():
-            raise InputError("file not found", path=b)
+    bag_paths = _checked_inputs(bags, settings, workers)
     # Read every bag once here: bad bags fail before any work starts, and totals are known.
-    frames_per_bag, needles = [], {}
-    widest: SceneLayout | None = None  # the staged layout with the most arms
-    for b in bag_paths:
-        rec = load_recording(b, settings)
-        frames_per_bag.append(len(frame_times(rec.start, rec.end, settings.period)))
-        needles[b] = rec.meta.get("needle")
-        if rec.layout is not None and len(rec.layout.arms) > len((widest or DEFAULT_LAYOUT).arms):
-            widest = rec.layout
-    settings = with_recorded_needle(settings, needles)
+    survey = _survey_bags(bag_paths, settings)
+    settings = with_recorded_needle(settings, survey.needles)
     settings, needle_model = resolve_object_model(settings)  # before anything is written
-    total = sum(frames_per_bag) * settings.replays
     out = Path(out)
     for folder in (out, out / "models"):  # leftovers of a killed driver (not scene folders)
         for tmp in folder.glob(".*.tmp-*") if folder.is_dir() else ():
             tmp.unlink(missing_ok=True)
-    _write_dataset_files(out, split, bag_paths, settings, needle_model, widest)
+    _write_dataset_files(out, split, bag_paths, settings, needle_model, survey.widest)
     if needle_model is not None:
         level = logging.WARNING if needle_model.off_scale else logging.INFO
         log.log(level, "%s", needle_model.describe())
@@ -413,15 +394,7 @@ def generate_dataset(
         for i, b in enumerate(bag_paths)
         for r in range(settings.replays)
     ]
-    bar = tqdm(total=total, unit="frame", desc="generate", disable=not progress, smoothing=0.1)
-    runner = executor or LocalExecutor(workers)
-    try:
-        results: list[ReplayResult] = runner.map(_replay_unit, units, on_progress=bar.update)
-        for unit, res in zip(units, results, strict=True):
-            # frames a resumed run did not need to render
-            bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
-    finally:
-        bar.close()
+    results = _run_units(units, survey.frames, executor or LocalExecutor(workers), progress)
     scene_ids = [u.scene_id for u in units]
     # the root's targets files name the images to evaluate: a training split must not
     # replace those of a test split generated before it into the same dataset
@@ -435,3 +408,60 @@ def generate_dataset(
         frames_rendered=sum(r.frames_rendered for r in results),
         frames_written=sum(r.frames_written for r in results),
     )
+
+
+def _checked_inputs(
+    bags: Sequence[str | Path], settings: GenerateSettings, workers: int
+) -> list[str]:
+    """The bag paths, once the counts, the profile and the paths are valid (one line each)."""
+    if settings.replays < 1:
+        raise InputError("must be >= 1", field="replays")
+    if workers < 1:
+        raise InputError("must be >= 1", field="workers")
+    if settings.domain not in DOMAINS:
+        raise InputError(f"must be one of {', '.join(DOMAINS)}", field="domain")
+    bag_paths = [str(b) for b in bags]
+    if not bag_paths:
+        raise InputError("no bag given")
+    for b in bag_paths:
+        if not Path(b).exists():
+            raise InputError("file not found", path=b)
+    return bag_paths
+
+
+@dataclass
+class _Survey:
+    """What the driver learns from reading every bag once."""
+
+    frames: list[int]  # frames per replay of each bag
+    needles: dict[str, dict[str, Any] | None]  # each bag's recorded needle spec
+    widest: SceneLayout | None  # the staged layout with the most arms (None: the default's)
+
+
+def _survey_bags(bag_paths: Sequence[str], settings: GenerateSettings) -> _Survey:
+    """Read every bag as the replays will (staged when a real robot's)."""
+    survey = _Survey([], {}, None)
+    for b in bag_paths:
+        rec = load_recording(b, settings)
+        survey.frames.append(len(frame_times(rec.start, rec.end, settings.period)))
+        survey.needles[b] = rec.meta.get("needle")
+        arms = (survey.widest or DEFAULT_LAYOUT).arms
+        if rec.layout is not None and len(rec.layout.arms) > len(arms):
+            survey.widest = rec.layout
+    return survey
+
+
+def _run_units(
+    units: list[ReplayUnit], frames_per_bag: list[int], runner: Executor, progress: bool
+) -> list[ReplayResult]:
+    """Run every replay, with a progress bar over all their frames."""
+    total = sum(frames_per_bag[u.bag_index] for u in units)
+    bar = tqdm(total=total, unit="frame", desc="generate", disable=not progress, smoothing=0.1)
+    try:
+        results: list[ReplayResult] = runner.map(_replay_unit, units, on_progress=bar.update)
+        for unit, res in zip(units, results, strict=True):
+            # frames a resumed run did not need to render
+            bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
+    finally:
+        bar.close()
+    return results

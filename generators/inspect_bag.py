@@ -69,11 +69,12 @@ class BagReport:
         found = {(s.stream, s.arm): s.topic for s in self.sources}
         out = ["streams:"]
         for arm in ALL_ARMS:
-            if (arm_js := found.get(("psm_joints", arm))) is None:
+            topics = [found.get((stream, arm)) for stream in ("psm_joints", "psm_pose", "jaw")]
+            if topics == [None, None, None]:
                 continue
-            cp = found.get(("psm_pose", arm), "none")
-            jaw = found.get(("jaw", arm), "none")
-            out.append(f"  {arm}: joints {arm_js}, Cartesian {cp}, jaw {jaw}")
+            js, cp, jaw = (t or "none" for t in topics)
+            note = "" if topics[0] else " (not rendered: generate poses arms from joints)"
+            out.append(f"  {arm}: joints {js}, Cartesian {cp}, jaw {jaw}{note}")
         for stream, name in (("ecm_joints", "ECM"), ("needle_pose", "needle"), ("meta", "meta")):
             out.append(f"  {name}: {found.get((stream, None), 'none')}")
         return out

@@ -136,7 +136,8 @@ def projection_matrix(
 
 def view_matrix(T_world_cam: F64) -> list[float]:
     """OpenGL view matrix (column-major) of a camera pose with OpenCV axes, m."""
-    return (_CV2GL @ np.linalg.inv(T_world_cam)).T.ravel().tolist()
+    values: list[float] = (_CV2GL @ np.linalg.inv(T_world_cam)).T.ravel().tolist()
+    return values
 
 
 def depth_buffer_to_mm(
@@ -290,7 +291,7 @@ def load_egl(client: int) -> int:
         plugin = p.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=client)
     if plugin < 0:
         raise RuntimeError("pybullet's EGL renderer plugin failed to load")
-    return plugin
+    return int(plugin)
 
 
 def write_obj(
@@ -366,12 +367,15 @@ def upload_part(client: int, part: VisualPart, folder: Path, texture: int | None
     body = p.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=client)
     if texture is not None:
         p.changeVisualShape(body, -1, textureUniqueId=texture, physicsClientId=client)
-    return body
+    return int(body)
 
 
 def _quaternions(poses: list[F64]) -> NDArray[np.float64]:
     """(N, 4) xyzw quaternions of 4×4 poses (one scipy call for all)."""
-    return Rotation.from_matrix(np.stack([T[:3, :3] for T in poses])).as_quat()
+    quats: NDArray[np.float64] = Rotation.from_matrix(
+        np.stack([T[:3, :3] for T in poses])
+    ).as_quat()
+    return quats
 
 
 @dataclass(frozen=True)
@@ -593,7 +597,8 @@ class PyBulletBackend(ClosesOnExit):
         _, assets, _ = self._require()
         if name not in assets.parts:
             raise KeyError(f"no object {name!r}; annotated: {list(assets.annotated)}")
-        return assets.parts[name].model
+        model: ObjectModel = assets.parts[name].model
+        return model
 
     # ---------------------------------------------------------------------- state
 

@@ -172,7 +172,7 @@ def _merge(models: list[ObjectModel]) -> ObjectModel:
     return ObjectModel(
         pts=np.concatenate([m.pts for m in models]),
         faces=np.concatenate([m.faces + o for m, o in zip(models, offsets, strict=True)]),
-        normals=np.concatenate([m.normals for m in models]),  # type: ignore[misc]
+        normals=np.concatenate([m.normals for m in models]),  # type: ignore[misc, unused-ignore]
     )
 
 
@@ -470,8 +470,8 @@ def _pad_grid(shape: str = "incisions") -> tuple[F64, F64]:
         ys.append(np.array([-INCISION_HALF_LENGTH, -INCISION_HALF_LENGTH + 0.1]))
         ys.append(np.array([INCISION_HALF_LENGTH - 0.1, INCISION_HALF_LENGTH]))
     # Unique to 1 µm (floating-point twins would make degenerate triangles).
-    gx = np.unique(np.round(np.concatenate(xs), 6))
-    gy = np.unique(np.round(np.concatenate(ys), 6))
+    gx: F64 = np.unique(np.round(np.concatenate(xs), 6)).astype(np.float64, copy=False)
+    gy: F64 = np.unique(np.round(np.concatenate(ys), 6)).astype(np.float64, copy=False)
     return gx, gy
 
 
@@ -693,7 +693,8 @@ def paint_marks(
     shade = base.mean(axis=2, keepdims=True) / max(float(base.mean()), 1e-6)
     mark = np.asarray(rgb, np.float64) * (0.85 + 0.15 * shade)
     out = base * (1.0 - alpha) + alpha * mark
-    return (np.clip(out, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    painted: NDArray[np.uint8] = (np.clip(out, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return painted
 
 
 @functools.lru_cache(maxsize=4)

@@ -146,16 +146,17 @@ def _interp(times: F64, values: F64, t: float) -> F64:
     i, w = _bracket(times, t)
     if len(times) == 1:
         return np.array(values[0], dtype=np.float64)
-    return (1.0 - w) * values[i] + w * values[i + 1]
+    out: F64 = (1.0 - w) * values[i] + w * values[i + 1]
+    return out
 
 
 def _interp_pose(times: F64, poses: F64, t: float) -> F64:
     i, w = _bracket(times, t)
     if len(times) == 1 or w == 0.0:
-        return poses[i].copy()
+        return np.array(poses[i], dtype=np.float64)
     T_a, T_b = poses[i], poses[i + 1]
     if w == 1.0:
-        return T_b.copy()
+        return np.array(T_b, dtype=np.float64)
     rv = Rotation.from_matrix(T_a[:3, :3].T @ T_b[:3, :3]).as_rotvec()
     T = np.eye(4)
     T[:3, :3] = T_a[:3, :3] @ Rotation.from_rotvec(w * rv).as_matrix()

@@ -124,7 +124,7 @@ class GenerateSettings:
     stereo: bool = False
     topic_map: str = "crtk"
     backend: str = "pybullet"
-    backend_config: dict = field(default_factory=dict)
+    backend_config: dict[str, Any] = field(default_factory=dict)
     renderer: str | None = "pybullet"
     rgb_format: str = "png"
     domain: str = DEFAULT_DOMAIN
@@ -132,7 +132,7 @@ class GenerateSettings:
     psm_tool: str | None = None
     joint_source: str | None = None
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         """JSON-ready form: ``domain`` only when not the default (as before it existed), then
         with the profile's ``domain_revision`` (see
         :data:`~bopsurg.generators.domain.DOMAIN_REVISIONS`), so resuming compares it too;
@@ -251,7 +251,7 @@ class _SceneFiles:
         self.camera: dict[int, CameraInfo] = {}
         self.gt: dict[int, list[GtPose]] = {}
         self.gt_info: dict[int, list[GtInfo]] = {}
-        self.record: dict = {}
+        self.record: dict[str, Any] = {}
 
     def load(self) -> None:
         # A SIGKILL can leave a writer's temporary file behind; this unit owns the folder.

@@ -55,37 +55,45 @@ def write_dvrk_bag(
     cp_noise_m: float = 0.0,
     jaw: bool = False,
     seed: int = 0,
+    joints: np.ndarray | None = None,
+    cartesian_only: tuple[str, ...] = (),
 ) -> dict[str, np.ndarray]:
-    """Write the bag (``fmt``: ros1, ros2 or mcap); returns each arm's joints (T, 6)."""
+    """Write the bag (``fmt``: ros1, ros2 or mcap); returns each arm's joints (T, 6).
+
+    ``joints`` (T, 6) replaces the synthetic motion of every arm (and sets T); the arms of
+    ``cartesian_only`` get their Cartesian topics only.
+    """
     T_reg = known_registration() if T_ecm_base is None else T_ecm_base
     ros2 = fmt != "ros1"
     ts = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
-    n = round(duration * rate_hz) + 1
+    n = round(duration * rate_hz) + 1 if joints is None else len(joints)
     times = np.arange(n) / rate_hz
     stamps = T0_NS + np.rint(times * 1e9).astype(np.int64)
     kin = dvrk_psm(tool)
     rng = np.random.default_rng(seed + 100)
     messages: list[tuple[str, str, int, object]] = []
-    joints = {}
+    written = {}
     for k, arm in enumerate(arms):
         A = arm.upper()
-        q = dvrk_joints(times, seed + k)
-        joints[arm] = q
+        q = dvrk_joints(times, seed + k) if joints is None else np.asarray(joints, np.float64)
+        written[arm] = q
         cp = T_reg @ kin.tip_poses(q)
         cp[:, :3, 3] += cp_noise_m * rng.standard_normal((n, 3))
         setpoint = np.concatenate([q[:1], q[:-1]])  # the controller's command, one tick ahead
         sp_cp = T_reg @ kin.tip_poses(setpoint)
         for i, t in enumerate(stamps):
             t = int(t)
-            messages.append((f"/{A}/measured_js", _JS, t, _joint_state(ts, ros2, t, q[i])))
-            messages.append((f"/{A}/setpoint_js", _JS, t, _joint_state(ts, ros2, t, setpoint[i])))
+            if arm not in cartesian_only:
+                messages.append((f"/{A}/measured_js", _JS, t, _joint_state(ts, ros2, t, q[i])))
+                js = _joint_state(ts, ros2, t, setpoint[i])
+                messages.append((f"/{A}/setpoint_js", _JS, t, js))
             messages.append((f"/{A}/measured_cp", _PS, t, _pose(ts, ros2, t, cp[i])))
             messages.append((f"/{A}/setpoint_cp", _PS, t, _pose(ts, ros2, t, sp_cp[i])))
             messages.append((f"/{A}/measured_cv", _TW, t, _twist(ts, ros2, t)))
             if jaw:
                 messages.append((f"/{A}/jaw/measured_js", _JS, t, _jaw(ts, ros2, t, 0.4)))
     _write(path, fmt, ts, messages)
-    return joints
+    return written
 
 
 _JS, _PS, _TW = (

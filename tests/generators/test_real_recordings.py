@@ -158,6 +158,17 @@ def test_inspect_prints_streams_plan_and_fk_check(tmp_path, capsys):
     assert 0.0 < rms <= 0.1
 
 
+def test_inspect_names_an_arm_recorded_without_joints(tmp_path, capsys):
+    path = tmp_path / "mixed.bag"
+    write_dvrk_bag(path, "ros1", duration=0.2, arms=("psm1", "psm2"), cartesian_only=("psm1",))
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "psm1: joints none, Cartesian /PSM1/measured_cp, jaw none (not rendered" in out
+    assert "render the recorded arms psm2 " in out
+    assert "fk-check PSM2: 21 pairs" in out
+    assert "fk-check PSM1" not in out
+
+
 def test_a_bag_without_arms_is_one_clear_line(tmp_path):
     path = tmp_path / "none.bag"
     write_dvrk_bag(path, "ros1", duration=0.1, arms=())
@@ -258,3 +269,16 @@ def test_generate_refuses_a_tool_for_a_simulator_recording(tmp_path):
     write_bag(path, synthesize_suturing(1, duration=1.0, rate_hz=10.0))
     args = ["generate", str(path), "--out", str(tmp_path / "ds"), "--replays", "1"]
     assert main([*args, "--psm-tool", "LARGE_NEEDLE_DRIVER_400006"]) != 0
+
+
+def test_real_joints_may_overshoot_their_limits_a_little(tmp_path):
+    joints = np.array([[0.0, 0.0, -0.01, 0.0, 0.0, 0.0], [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]])
+    for k, (q, ok) in enumerate(((joints, True), (joints - [0, 0, 0.1, 0, 0, 0], False))):
+        path = tmp_path / f"limits{k}.bag"
+        write_dvrk_bag(path, "ros1", duration=0.01, joints=q)
+        if ok:  # 1 cm below the insertion's lower limit: a real arm's overshoot
+            assert read_bag(path).psm_joints["psm2"][1][0, 2] == pytest.approx(-0.01)
+        else:
+            with pytest.raises(BagError, match="outer_insertion") as err:
+                read_bag(path)
+            assert "limits1.bag" in str(err.value)
