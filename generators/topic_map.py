@@ -10,8 +10,8 @@ makes a stream mandatory.
 A ``[types]`` table registers custom messages: ``"pkg/msg/Name" = "relative/path/Name.msg"``.
 
 Top-level keys: ``robot`` says whose kinematics replay the map's recordings (``simulator``,
-``dvrk``, or ``auto``: the simulator's when the bag carries a meta message, as every bag
-bopsurg writes does, else the real dVRK's) and ``require_one_arm = true`` makes the joints
+the default; ``dvrk``; or ``auto``: the simulator's when the bag carries a meta message, as
+every bag bopsurg writes does, else the real dVRK's) and ``require_one_arm = true`` makes the joints
 of at least one arm mandatory.
 """
 
@@ -79,7 +79,8 @@ class TopicMap:
         path: The TOML file.
         sources: Candidate topics, in order of preference within each stream.
         types: Custom message types: type name → ``.msg`` file.
-        robot: ``auto``, ``simulator`` or ``dvrk`` (:data:`ROBOTS`).
+        robot: ``auto``, ``simulator`` or ``dvrk`` (:data:`ROBOTS`); ``simulator`` unless
+            the file says.
         require_one_arm: At least one arm's ``psm_joints`` must be in the bag.
     """
 
@@ -87,7 +88,7 @@ class TopicMap:
     path: Path
     sources: tuple[Source, ...]
     types: Mapping[str, Path]
-    robot: str = "auto"
+    robot: str = "simulator"
     require_one_arm: bool = False
 
     def robot_of(self, has_meta: bool) -> str:
@@ -142,7 +143,8 @@ def load_topic_map(topic_map: str | Path) -> TopicMap:
     if not isinstance(raw, list) or not raw:
         raise BagError("no [[source]] entries", path=path)
     sources = tuple(_parse_source(entry, i, path) for i, entry in enumerate(raw))
-    robot = str(data.get("robot", "auto"))
+    # A map written before real recordings were staged replays as it always did.
+    robot = str(data.get("robot", "simulator"))
     if robot not in ROBOTS:
         raise BagError(f"must be one of {', '.join(ROBOTS)}", path=path, field="robot")
     return TopicMap(

@@ -282,3 +282,23 @@ def test_real_joints_may_overshoot_their_limits_a_little(tmp_path):
             with pytest.raises(BagError, match="outer_insertion") as err:
                 read_bag(path)
             assert "limits1.bag" in str(err.value)
+
+
+def test_the_topic_maps_robot_key(tmp_path):
+    path = tmp_path / "run.bag"
+    write_dvrk_bag(path, "ros1", duration=0.1)
+    body = (
+        '[[source]]\nstream = "psm_joints"\narm = "psm2"\ntopic = "/PSM2/measured_js"\n'
+        'type = "sensor_msgs/msg/JointState"\nfield = "position"\n'
+    )
+    for head, robot in (
+        ("", "simulator"),
+        ('robot = "dvrk"\n', "dvrk"),
+        ('robot = "auto"\n', "dvrk"),
+    ):
+        tmap = tmp_path / f"map_{robot}_{len(head)}.toml"
+        tmap.write_text(head + body, encoding="utf-8")
+        assert read_bag(path, topic_map=tmap).robot == robot
+    tmap.write_text('robot = "ambf"\n' + body, encoding="utf-8")
+    with pytest.raises(BagError, match="robot"):
+        read_bag(path, topic_map=tmap)
