@@ -103,7 +103,7 @@ class BagReport:
                 f"{st.extent * 1e3:.0f} mm, camera {st.view_distance * 1e3:.0f} mm from its "
                 "centre at zero ECM joints; the recorded ECM joints are not used)"
             )
-        out.append(f"  write {self.frames} frames per replay at --period {self.period:g} s")
+        out.append(f"  render {self.frames} frames per replay at --period {self.period:g} s")
         if rec.psm_poses and not self.checks:
             out.append("  (fk-check: no joint and pose samples pair by stamp)")
         return out
