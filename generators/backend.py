@@ -29,8 +29,10 @@ from bopsurg.needle import NeedleSpec
 
 F64 = NDArray[np.float64]
 
-#: The patient-side arms of the scene.
+#: The patient-side arms of the default scene (bopsurg's own and the simulator's recordings).
 ARMS = ("psm1", "psm2")
+#: Every patient-side arm a recording may carry.
+ALL_ARMS = ("psm1", "psm2", "psm3")
 
 #: Names of the annotated objects a backend must know, with their BOP obj_id.
 #: The needle is object 1; instrument parts are optional further objects.
@@ -68,11 +70,11 @@ DEFAULT_NEEDLE_POSE = np.array(
 )
 
 
-def default_state() -> SceneState:
-    """Both arms parked, the endoscope at its base pose, the needle on the tissue (copies)."""
+def default_state(arms: tuple[str, ...] = ARMS) -> SceneState:
+    """The arms parked, the endoscope at its base pose, the needle on the tissue (copies)."""
     return SceneState(
-        psm_joints={arm: PARKED_PSM_JOINTS.copy() for arm in ARMS},
-        jaws=dict.fromkeys(ARMS, PARKED_JAW),
+        psm_joints={arm: PARKED_PSM_JOINTS.copy() for arm in arms},
+        jaws=dict.fromkeys(arms, PARKED_JAW),
         ecm_joints=DEFAULT_ECM_JOINTS.copy(),
         needle_pose=DEFAULT_NEEDLE_POSE.copy(),
     )
@@ -265,6 +267,7 @@ BackendFactory = Callable[[Mapping[str, Any]], RenderBackend]
 
 
 __all__ = [
+    "ALL_ARMS",
     "ARMS",
     "DEFAULT_ECM_JOINTS",
     "DEFAULT_NEEDLE_POSE",

@@ -20,9 +20,9 @@ from scipy.spatial.transform import Rotation
 from bopsurg.generators.kinematics import (
     ECM_JOINT_LIMITS,
     ECM_JOINT_NAMES,
-    JAW_LIMITS,
-    PSM_JOINT_LIMITS,
     PSM_JOINT_NAMES,
+    SIMULATOR_PSM,
+    PsmKinematics,
 )
 from bopsurg.generators.recording import Recording
 from bopsurg.generators.topic_map import (
@@ -36,6 +36,10 @@ from bopsurg.generators.topic_map import (
 
 F64 = NDArray[np.float64]
 
+#: Slack on the limits for a real robot's joints, rad or m: measured joints of a real arm
+#: overshoot its software limits a little; far outside them means wrong units or order.
+REAL_LIMIT_SLACK = 0.05
+
 
 def read_bag(
     path: str | Path,
@@ -43,6 +47,8 @@ def read_bag(
     topic_map: str | Path = "crtk",
     check_limits: bool = True,
     limit_tol: float = 1e-6,
+    joint_source: str | None = None,
+    kinematics: PsmKinematics | None = None,
 ) -> Recording:
     """Read a bag (ROS1 file, ROS2 sqlite3 or MCAP folder) into a :class:`Recording`.
 
@@ -54,10 +60,17 @@ def read_bag(
         path: The ``.bag`` file, the ROS2 bag folder (or a ``.db3`` / ``.mcap`` file in it).
         topic_map: Built-in map name (``"crtk"``, ``"ambf"``) or TOML path.
         check_limits: Reject joints and jaws outside the kinematics' limits.
-        limit_tol: Slack on the limits (rad or m).
+        limit_tol: Slack on the limits (rad or m); at least :data:`REAL_LIMIT_SLACK` for a
+            real robot's recording.
+        joint_source: ``measured`` or ``setpoint``: take the PSM joints, jaws and tool-tip
+            poses only from topics of that kind (``.../setpoint_js`` vs the others); None:
+            the first candidate present.
+        kinematics: Whose joint and jaw limits to check; default: the simulator's for a
+            simulator's recording, the dVRK's Large Needle Driver for a real robot's (the
+            topic map's ``robot``).
 
     Returns:
-        The recording; ``source`` is the bag path.
+        The recording; ``source`` is the bag path, ``robot`` whose kinematics replay it.
 
     Raises:
         BagError: One line naming the bag and topic: missing or unreadable (truncated,
@@ -76,15 +89,38 @@ def read_bag(
     if bag.is_file() and bag.suffix != ".bag":
         raise BagError("a ROS1 bag file name must end in .bag (ROS2 bags are folders)", path=bag)
     tmap = load_topic_map(topic_map)
-    default_ts = typestore(Stores.ROS2_HUMBLE, tmap)
-    raw: dict[tuple[str, str | None], tuple[Source, list[int], list[Any]]] = {}
+    raw, meta_json = _read_streams(bag, tmap, joint_source)
+    meta: dict[str, Any] = {}
+    if meta_json is not None:
+        try:
+            meta = dict(json.loads(meta_json))
+        except (ValueError, TypeError) as err:
+            raise BagError(f"meta message is not a JSON object ({err})", path=bag) from err
+    robot = tmap.robot_of(meta_json is not None)
+    if kinematics is None:
+        from bopsurg.generators.dvrk_tools import dvrk_psm
+
+        kinematics = SIMULATOR_PSM if robot == "simulator" else dvrk_psm()
+    tol = limit_tol if robot == "simulator" else max(limit_tol, REAL_LIMIT_SLACK)
+    rec = _assemble(bag, raw, meta, kinematics if check_limits else None, tol)
+    rec.robot = robot
+    return rec
+
+
+RawStreams = dict[tuple[str, str | None], tuple[Source, list[int], list[Any]]]
+
+
+def _read_streams(
+    bag: Path, tmap: TopicMap, joint_source: str | None
+) -> tuple[RawStreams, str | None]:
+    """Every chosen stream's (source, stamps ns, values) and the meta message's text."""
+    raw: RawStreams = {}
     meta_json: str | None = None
     try:
-        with AnyReader([bag], default_typestore=default_ts) as reader:
-            chosen = _choose_sources(reader, tmap, bag)
+        with AnyReader([bag], default_typestore=typestore(Stores.ROS2_HUMBLE, tmap)) as reader:
             by_topic: dict[str, list[Source]] = {}
-            for src in chosen:  # one topic may feed several streams (AMBF baselink State)
-                by_topic.setdefault(src.topic, []).append(src)
+            for src in choose_sources(reader, tmap, bag, joint_source):
+                by_topic.setdefault(src.topic, []).append(src)  # AMBF: one topic, 2 streams
                 raw[src.key] = (src, [], [])
             conns = [c for c in reader.connections if c.topic in by_topic]
             for conn, t_bag, data in reader.messages(connections=conns):
@@ -108,13 +144,7 @@ def read_bag(
         raise
     except Exception as err:  # rosbags raises many types for truncated or corrupt bags
         raise BagError(f"cannot read bag ({_brief(err)})", path=bag) from err
-    meta: dict[str, Any] = {}
-    if meta_json is not None:
-        try:
-            meta = dict(json.loads(meta_json))
-        except (ValueError, TypeError) as err:
-            raise BagError(f"meta message is not a JSON object ({err})", path=bag) from err
-    return _assemble(bag, raw, meta, check_limits, limit_tol)
+    return raw, meta_json
 
 
 def _brief(err: BaseException) -> str:
@@ -122,35 +152,67 @@ def _brief(err: BaseException) -> str:
     return text if len(text) <= 200 else text[:197] + "..."
 
 
-def _choose_sources(reader: Any, tmap: TopicMap, bag: Path) -> list[Source]:
-    """The first candidate present in the bag for each stream of the map; checks types."""
+JOINT_SOURCES = ("measured", "setpoint")
+
+
+def _of_kind(cands: list[Source], joint_source: str | None) -> list[Source]:
+    """The candidates of a per-arm stream that are of the wanted kind (setpoint or not)."""
+    if joint_source is None or cands[0].stream not in ("psm_joints", "jaw", "psm_pose"):
+        return cands
+    if joint_source not in JOINT_SOURCES:
+        raise BagError(f"must be one of {', '.join(JOINT_SOURCES)}", field="joint_source")
+    want_setpoint = joint_source == "setpoint"
+    return [s for s in cands if ("setpoint" in s.topic) == want_setpoint]
+
+
+def choose_sources(
+    reader: Any, tmap: TopicMap, bag: Path, joint_source: str | None = None
+) -> list[Source]:
+    """For each stream of the map, the first candidate the bag holds with the map's type.
+
+    A candidate topic present with another type is skipped when a later candidate fits, and
+    is the error when none does.
+    """
     present: dict[str, list[Any]] = {}
     for conn in reader.connections:
         present.setdefault(conn.topic, []).append(conn)
     chosen = []
     for key in tmap.stream_keys():
-        cands = tmap.candidates(key)
-        src = next((s for s in cands if s.topic in present), None)
-        if src is None:
-            if any(s.required for s in cands):
-                topics = " or ".join(s.topic for s in cands)
-                have = ", ".join(sorted(present)) or "none"
-                raise BagError(
-                    f"required topic missing (bag topics: {have})", path=bag, field=topics
+        cands = [s for s in _of_kind(tmap.candidates(key), joint_source) if s.topic in present]
+        fits = [
+            s
+            for s in cands
+            if all(normalize_msgtype(c.msgtype) == s.msgtype for c in present[s.topic])
+        ]
+        if not fits:
+            if cands:
+                src = cands[0]
+                wrong = next(
+                    c for c in present[src.topic] if normalize_msgtype(c.msgtype) != src.msgtype
                 )
-            continue
-        conns = present[src.topic]
-        for conn in conns:
-            if normalize_msgtype(conn.msgtype) != src.msgtype:
                 raise BagError(
-                    f"message type {conn.msgtype} is not the topic map's {src.msgtype}",
+                    f"message type {wrong.msgtype} is not the topic map's {src.msgtype}",
                     path=bag,
                     field=src.topic,
                 )
-        if sum(int(getattr(c, "msgcount", 1)) for c in conns) == 0:
+            if any(s.required for s in tmap.candidates(key)):
+                _missing(tmap.candidates(key), present, bag)
+            continue
+        src = fits[0]
+        if sum(int(getattr(c, "msgcount", 1)) for c in present[src.topic]) == 0:
             raise BagError("topic has no messages", path=bag, field=src.topic)
         chosen.append(src)
+    if tmap.require_one_arm and not any(s.stream == "psm_joints" for s in chosen):
+        arms = [s for s in tmap.sources if s.stream == "psm_joints"]
+        _missing(_of_kind(arms, joint_source) or arms, present, bag)
     return chosen
+
+
+def _missing(cands: Sequence[Source], present: Mapping[str, Any], bag: Path) -> None:
+    """Raise the error of a required stream none of whose candidates the bag holds."""
+    topics = " or ".join(s.topic for s in cands)
+    have = ", ".join(sorted(present)) or "none"
+    raise BagError(f"required topic missing (bag topics: {have})", path=bag, field=topics)
 
 
 def _stamp(msg: Any, t_bag: int) -> int:
@@ -175,7 +237,7 @@ def _get_field(msg: Any, src: Source, bag: Path) -> Any:
 
 def _extract(msg: Any, src: Source, bag: Path, index: int) -> F64:
     value = _get_field(msg, src, bag)
-    if src.stream == "needle_pose":
+    if src.stream in ("needle_pose", "psm_pose"):
         if hasattr(value, "position"):
             p, q = value.position, value.orientation
         elif hasattr(value, "translation"):
@@ -203,25 +265,31 @@ def _extract(msg: Any, src: Source, bag: Path, index: int) -> F64:
         raise BagError(
             f"scale has {len(src.scale)} elements for {arr.size} values", path=bag, field=src.topic
         )
-    return arr * np.asarray(src.scale)
+    scaled: F64 = arr * np.asarray(src.scale)
+    return scaled
 
 
 _EXPECTED = {"psm_joints": 6, "jaw": 1, "ecm_joints": 4}
-_LIMITS = {
-    "psm_joints": (PSM_JOINT_LIMITS, PSM_JOINT_NAMES),
-    "jaw": (np.array([JAW_LIMITS]), ("jaw",)),
-    "ecm_joints": (ECM_JOINT_LIMITS, ECM_JOINT_NAMES),
-}
+
+
+def _limits(kinematics: PsmKinematics) -> dict[str, tuple[F64, Sequence[str]]]:
+    return {
+        "psm_joints": (kinematics.limits(), PSM_JOINT_NAMES),
+        "jaw": (np.array([kinematics.jaw_limits]), ("jaw",)),
+        "ecm_joints": (ECM_JOINT_LIMITS, ECM_JOINT_NAMES),
+    }
 
 
 def _assemble(
     bag: Path,
-    raw: Mapping[tuple[str, str | None], tuple[Source, list[int], list[Any]]],
+    raw: RawStreams,
     meta: dict[str, Any],
-    check_limits: bool,
+    kinematics: PsmKinematics | None,
     limit_tol: float,
 ) -> Recording:
-    """Validate the raw streams and convert them to relative-time arrays."""
+    """Validate the raw streams and convert them to relative-time arrays (joints and jaws
+    against the limits of ``kinematics`` unless None)."""
+    limits = {} if kinematics is None else _limits(kinematics)
     stamps_all = [s[0] for _, s, _ in raw.values() if s]
     if "time_origin_ns" in meta:
         origin = int(meta["time_origin_ns"])
@@ -244,7 +312,7 @@ def _assemble(
                 path=bag,
                 field=src.topic,
             )
-        if stream == "needle_pose":
+        if stream in ("needle_pose", "psm_pose"):
             vals = np.stack(values)
         else:
             n = _EXPECTED[stream]
@@ -264,12 +332,14 @@ def _assemble(
                 path=bag,
                 field=src.topic,
             )
-        if check_limits and stream in _LIMITS:
-            _check_limits(bag, src, times, vals, *_LIMITS[stream], limit_tol)
+        if stream in limits:
+            _check_limits(bag, src, times, vals, *limits[stream], limit_tol)
         if stream == "psm_joints":
             rec.psm_joints[str(arm)] = (times, vals)
         elif stream == "jaw":
             rec.jaws[str(arm)] = (times, vals[:, 0])
+        elif stream == "psm_pose":
+            rec.psm_poses[str(arm)] = (times, vals)
         elif stream == "ecm_joints":
             rec.ecm_joints = (times, vals)
         else:
@@ -298,4 +368,4 @@ def _check_limits(
         )
 
 
-__all__ = ["read_bag"]
+__all__ = ["JOINT_SOURCES", "choose_sources", "read_bag"]

@@ -52,6 +52,12 @@ own size on the recorded arc's centre, with a warning; more than 5x off is taken
 mm and refused, like meshes that are not needles (one line, nothing written). The mesh's path
 and sha256 are recorded in bopsurg_generate.json: resuming with another mesh is refused.
 
+Recordings of real robots (any bag without bopsurg's /bopsurg/meta under the crtk map): any
+of PSM1-3 (dVRK topics /PSM2/measured_js, ...), jaws and ECM optional, no needle topic. The
+recorded arms are posed with the dVRK's own kinematics (--psm-tool), the needle is held in
+one arm's jaws (--needle-holder) and the endoscope viewpoints are framed on the recorded
+tool-tip workspace. 'bopsurg inspect BAG' shows what will be done.
+
 Render backends are plugins (entry-point group 'bopsurg.render_backends'); --backend picks
 one and each --backend-option KEY=VALUE goes to it. PyBullet's options: renderer=tiny|egl
 (also --renderer), texture_seed=INT (procedural textures), light_distance=M (shadow light).
@@ -64,10 +70,11 @@ examples:
   bopsurg generate bags/ep001.bag --out data/tex3 --backend-option texture_seed=3
   bopsurg generate bags/ep001.bag --out data/mine --object-model Needle.ply
   bopsurg generate bags/*.bag --out data/wide --split train --domain wide
+  bopsurg generate pitch_exp_traj_01.bag --out data/dvrk --replays 4 --needle-holder psm2
 """
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add the subcommand."""
     from bopsurg.generators.replay import GenerateSettings
 
@@ -97,6 +104,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--delta", type=float, default=d.delta_mm, help="visibility tolerance, mm (default: 1)"
     )
     p.add_argument("--topic-map", default=d.topic_map, help="topic map: crtk, ambf or a TOML file")
+    add_recording_args(p)
     _add_camera_args(p, d)
     _add_needle_args(p)
     p.add_argument(
@@ -134,6 +142,34 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_executor_args(p, unit="replay")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=run)
+
+
+def add_recording_args(p: argparse.ArgumentParser) -> None:
+    """``--joints --psm-tool --needle-holder`` (recordings of real robots; also ``inspect``)."""
+    from bopsurg.generators.dvrk_tools import DEFAULT_TOOL
+
+    p.add_argument(
+        "--joints",
+        choices=("measured", "setpoint"),
+        default=None,
+        help="read the PSM joints (and jaws, Cartesian poses) from the measured_js or the "
+        "setpoint_js topics (default: the first the topic map finds, measured first)",
+    )
+    p.add_argument(
+        "--psm-tool",
+        default=None,
+        metavar="NAME",
+        help="real robots' recordings: the dVRK tool whose kinematics (sawIntuitiveResearchKit "
+        f"share/tool/NAME.json) pose the arms (default: {DEFAULT_TOOL})",
+    )
+    p.add_argument(
+        "--needle-holder",
+        default="auto",
+        metavar="ARM",
+        help="real robots' recordings (no needle topic): the arm whose jaws hold the needle, "
+        "psm1|psm2|psm3, 'auto' (the recorded arm, or the first of several) or 'none' "
+        "(on the tissue) (default: auto)",
+    )
 
 
 def _add_camera_args(p: argparse.ArgumentParser, d: GenerateSettings) -> None:
@@ -286,6 +322,9 @@ def run(args: argparse.Namespace) -> int:
         K=_intrinsics(args),
         rgb_format=args.rgb_format,
         domain=args.domain,
+        needle_holder=args.needle_holder,
+        psm_tool=args.psm_tool,
+        joint_source=args.joints,
     )
     t0 = time.perf_counter()
     report = generate_dataset(

@@ -66,7 +66,7 @@ def model_key(model: ObjectModel) -> bytes:
     return h.digest()
 
 
-class PyBulletDepthRenderer(ClosesOnExit):
+class PyBulletDepthRenderer(ClosesOnExit):  # type: ignore[misc, unused-ignore]
     """Renders z-depth (mm) of object models with pybullet's TinyRenderer, headless.
 
     Usage::
@@ -197,4 +197,5 @@ class PyBulletDepthRenderer(ClosesOnExit):
             )
             return depth, seg
 
-        return render_in_window(mesh.hull, T, K, (width, height), (near, far), render)
+        depth: F64 = render_in_window(mesh.hull, T, K, (width, height), (near, far), render)
+        return depth

@@ -325,6 +325,28 @@ def draw_domain(
     setup = _pick(rng, list(LIGHT_SETUPS))
     draw = draw_replay(rng, replay_index, LIGHT_SETUPS[setup])
     distance = _u(rng, *WIDE_DISTANCE_MM)
+    tint, background, appearance = _draw_appearance(rng)
+    thread = _draw_thread(rng)
+    # Drawn last (revision 2), so every draw above is what revision 1 drew.
+    appearance = replace(appearance, phantom_marks=_draw_marks(rng))
+    orbit = _draw_orbit(rng)  # revision 3, after everything above
+    # Revision 4, drawn last: the groove pad.
+    if _u(rng, 0.0, 1.0) < GROOVE_SHARE:
+        appearance = replace(appearance, phantom_shape="groove")
+    return draw, DomainDraw(
+        profile=profile,
+        light_setup=setup,
+        distance_mm=distance,
+        phantom_tint=tint,
+        background=background,
+        appearance=appearance,
+        thread=thread,
+        orbit=orbit,
+    )
+
+
+def _draw_appearance(rng: np.random.Generator) -> tuple[str, str, Appearance]:
+    """The phantom's tint and the background (their names) and the materials of ``wide``."""
     tint = _pick(rng, list(PHANTOM_TINTS))
     background = _pick(rng, list(BACKGROUNDS))
     surface = _pick(rng, PHANTOM_SURFACES)
@@ -342,8 +364,13 @@ def draw_domain(
         metal_rgba=(metal, metal, metal * 1.03, 1.0),
         jaw_rgba=(0.85 * metal, 0.85 * metal, 0.88 * metal, 1.0),
     )
+    return tint, background, appearance
+
+
+def _draw_thread(rng: np.random.Generator) -> ThreadDraw:
+    """The suture thread of ``wide``."""
     colour = THREAD_COLOURS[_pick(rng, list(THREAD_COLOURS))]
-    thread = ThreadDraw(
+    return ThreadDraw(
         length_mm=_u(rng, 40.0, 90.0),
         radius_mm=_u(rng, 0.15, 0.25),
         segments=24,
@@ -356,8 +383,11 @@ def draw_domain(
         lay_seed=int(rng.integers(0, 2**31)),
         fall_m_s2=_u(rng, 0.05, 0.6),
     )
-    # Drawn last (revision 2), so every draw above is what revision 1 drew; all six numbers
-    # are drawn whether or not targets are shown, so the stream's length is fixed.
+
+
+def _draw_marks(rng: np.random.Generator) -> MarksDraw | None:
+    """Suture targets on :data:`MARKS_SHARE` of the replays; all six numbers are drawn
+    whether or not targets are shown, so the stream's length is fixed."""
     marked = _u(rng, 0.0, 1.0) < MARKS_SHARE
     marks = MarksDraw(
         shape=_pick(rng, MARK_SHAPES),
@@ -366,8 +396,12 @@ def draw_domain(
         spacing_mm=_u(rng, 6.0, 12.0),
         offset_mm=_u(rng, 2.5, 6.0),
     )
-    appearance = replace(appearance, phantom_marks=marks if marked else None)
-    # Revision 3, drawn after everything above, every number whether or not it orbits.
+    return marks if marked else None
+
+
+def _draw_orbit(rng: np.random.Generator) -> OrbitDraw | None:
+    """The orbit on :data:`ORBIT_SHARE` of the replays; every number is drawn whether or not
+    it orbits."""
     orbiting = _u(rng, 0.0, 1.0) < ORBIT_SHARE
     orbit = OrbitDraw(
         elevation_deg=_u(rng, *ORBIT_ELEVATION_DEG),
@@ -376,19 +410,7 @@ def draw_domain(
         off_x_deg=_u(rng, -ORBIT_OFF_AXIS_DEG, ORBIT_OFF_AXIS_DEG),
         off_y_deg=_u(rng, -ORBIT_OFF_AXIS_DEG, ORBIT_OFF_AXIS_DEG),
     )
-    # Revision 4, drawn last: the groove pad.
-    if _u(rng, 0.0, 1.0) < GROOVE_SHARE:
-        appearance = replace(appearance, phantom_shape="groove")
-    return draw, DomainDraw(
-        profile=profile,
-        light_setup=setup,
-        distance_mm=distance,
-        phantom_tint=tint,
-        background=background,
-        appearance=appearance,
-        thread=thread,
-        orbit=orbit if orbiting else None,
-    )
+    return orbit if orbiting else None
 
 
 def profile_scene(profile: str, scene: SceneSpec) -> SceneSpec:

@@ -37,6 +37,7 @@ from bopsurg.generators.backend import (
     split_backend_config,
 )
 from bopsurg.generators.domain import DOMAINS, profile_scene
+from bopsurg.generators.kinematics import DEFAULT_LAYOUT, SceneLayout
 from bopsurg.generators.object_model import NeedleModel
 from bopsurg.generators.recording import Recording
 from bopsurg.generators.replay import (
@@ -66,17 +67,57 @@ class GenerateReport:
     frames_written: int
 
 
-def _read_bag(path: str, topic_map: str) -> Recording:
+def _read_bag(path: str, topic_map: str, **options: Any) -> Recording:
     from bopsurg.generators.bag_reader import read_bag
 
-    return read_bag(path, topic_map=topic_map)
+    return read_bag(path, topic_map=topic_map, **options)
 
 
-def make_backend(settings: GenerateSettings) -> RenderBackend:
+def load_recording(path: str, settings: GenerateSettings) -> Recording:
+    """Read a bag as ``generate`` replays it: a real robot's recording staged in the scene.
+
+    A simulator's recording (bopsurg's own, AMBF's: the topic map's or the bag meta's say)
+    is returned as read. A real dVRK's is posed with the dVRK's kinematics of
+    ``settings.psm_tool`` and staged by :func:`~bopsurg.generators.staging.stage_recording`
+    (its arms, the needle in ``settings.needle_holder``'s jaws, the view on its workspace).
+
+    Raises:
+        InputError: ``--psm-tool`` for a simulator's recording, an unknown tool or holder.
+        BagError: The bag cannot be read (one line naming it).
+    """
+    from bopsurg.generators.dvrk_tools import dvrk_psm
+    from bopsurg.generators.staging import stage_recording
+
+    kinematics = None if settings.psm_tool is None else dvrk_psm(settings.psm_tool)
+    options: dict[str, Any] = {}
+    if settings.joint_source is not None:
+        options["joint_source"] = settings.joint_source
+    if kinematics is not None:
+        options["kinematics"] = kinematics
+    rec = _read_bag(path, settings.topic_map, **options)
+    if rec.robot == "simulator":
+        if settings.psm_tool is not None:
+            raise InputError(
+                "a simulator's recording is replayed with the simulator's kinematics; "
+                "--psm-tool is for recordings of real robots",
+                path=path,
+            )
+        return rec
+    needle = settings.backend_config.get("needle")
+    spec = NeedleSpec(**needle) if isinstance(needle, dict) else NeedleSpec()
+    staged, how = stage_recording(
+        rec, kinematics or dvrk_psm(), needle=spec, needle_holder=settings.needle_holder
+    )
+    log.debug("%s: staged %s", path, how)
+    return staged
+
+
+def make_backend(settings: GenerateSettings, layout: SceneLayout | None = None) -> RenderBackend:
     """Build the backend plugin named in the settings and load the scene into it.
 
     The settings' ``backend_config`` holds the scene keys
-    (:data:`~bopsurg.generators.backend.SCENE_KEYS`) and the backend's own options.
+    (:data:`~bopsurg.generators.backend.SCENE_KEYS`) and the backend's own options;
+    ``layout`` (a staged recording's) replaces the scene's.
 
     Raises:
         InputError: A scene key or backend option the backend rejects (one line).
@@ -90,6 +131,8 @@ def make_backend(settings: GenerateSettings) -> RenderBackend:
         raise  # e.g. the object model: already one line naming its file
     except (TypeError, ValueError) as err:
         raise InputError(f"backend {settings.backend!r}: {err}", field="--backend-option") from err
+    if layout is not None:
+        scene = replace(scene, layout=layout)
     if not isinstance(backend, RenderBackend):
         methods = [m for m in dir(RenderBackend) if not m.startswith("_")]
         missing = [m for m in methods if not callable(getattr(backend, m, None))]
@@ -113,10 +156,12 @@ def _replay_unit(unit: ReplayUnit, report: Callable[[int], None]) -> ReplayResul
     what the same client rendered before, so sharing one across replays would make the bytes
     depend on which worker ran which replays. (Textures are cached, so this costs ~0.2 s.)
     """
-    backend = make_backend(unit.settings)
+    rec = load_recording(unit.bag, unit.settings)
+    layout = rec.layout
+    backend = make_backend(unit.settings) if layout is None else make_backend(unit.settings, layout)
     try:
         amodal = make_amodal(unit.settings, unit.out)
-        return run_replay(unit, backend, _read_bag, amodal=amodal, on_frame=report)
+        return run_replay(unit, backend, lambda *_: rec, amodal=amodal, on_frame=report)
     finally:
         backend.close()
 
@@ -235,8 +280,13 @@ def _write_dataset_files(
     bags: Sequence[str],
     settings: GenerateSettings,
     needle_model: NeedleModel | None = None,
+    layout: SceneLayout | None = None,
 ) -> None:
-    """Models, camera.json and the split's generation record (refusing a mismatch)."""
+    """Models, camera.json and the split's generation record (refusing a mismatch).
+
+    ``layout``: the staged layout with the most arms, whose instrument parts are written
+    (the parts are numbered in the order of a scene's arms, so the same models serve all).
+    """
     info = {
         "bopsurg_version": __version__,
         "split": split,
@@ -261,7 +311,7 @@ def _write_dataset_files(
                 "new --out or --split (nothing was changed)",
                 path=info_path,
             )
-    backend = make_backend(settings)
+    backend = make_backend(settings) if layout is None else make_backend(settings, layout)
     try:
         if needle_model is not None:
             _check_backend_renders(backend, needle_model, settings.backend)
@@ -326,32 +376,16 @@ def generate_dataset(
         Counts of what was done.
     """
     settings = settings or GenerateSettings()
-    if settings.replays < 1:
-        raise InputError("must be >= 1", field="replays")
-    if workers < 1:
-        raise InputError("must be >= 1", field="workers")
-    if settings.domain not in DOMAINS:
-        raise InputError(f"must be one of {', '.join(DOMAINS)}", field="domain")
-    bag_paths = [str(b) for b in bags]
-    if not bag_paths:
-        raise InputError("no bag given")
-    for b in bag_paths:
-        if not Path(b).exists():
-            raise InputError("file not found", path=b)
+    bag_paths = _checked_inputs(bags, settings, workers)
     # Read every bag once here: bad bags fail before any work starts, and totals are known.
-    frames_per_bag, needles = [], {}
-    for b in bag_paths:
-        rec = _read_bag(b, settings.topic_map)
-        frames_per_bag.append(len(frame_times(rec.start, rec.end, settings.period)))
-        needles[b] = rec.meta.get("needle")
-    settings = with_recorded_needle(settings, needles)
+    survey = _survey_bags(bag_paths, settings)
+    settings = with_recorded_needle(settings, survey.needles)
     settings, needle_model = resolve_object_model(settings)  # before anything is written
-    total = sum(frames_per_bag) * settings.replays
     out = Path(out)
     for folder in (out, out / "models"):  # leftovers of a killed driver (not scene folders)
         for tmp in folder.glob(".*.tmp-*") if folder.is_dir() else ():
             tmp.unlink(missing_ok=True)
-    _write_dataset_files(out, split, bag_paths, settings, needle_model)
+    _write_dataset_files(out, split, bag_paths, settings, needle_model, survey.widest)
     if needle_model is not None:
         level = logging.WARNING if needle_model.off_scale else logging.INFO
         log.log(level, "%s", needle_model.describe())
@@ -360,15 +394,7 @@ def generate_dataset(
         for i, b in enumerate(bag_paths)
         for r in range(settings.replays)
     ]
-    bar = tqdm(total=total, unit="frame", desc="generate", disable=not progress, smoothing=0.1)
-    runner = executor or LocalExecutor(workers)
-    try:
-        results: list[ReplayResult] = runner.map(_replay_unit, units, on_progress=bar.update)
-        for unit, res in zip(units, results, strict=True):
-            # frames a resumed run did not need to render
-            bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
-    finally:
-        bar.close()
+    results = _run_units(units, survey.frames, executor or LocalExecutor(workers), progress)
     scene_ids = [u.scene_id for u in units]
     # the root's targets files name the images to evaluate: a training split must not
     # replace those of a test split generated before it into the same dataset
@@ -382,3 +408,60 @@ def generate_dataset(
         frames_rendered=sum(r.frames_rendered for r in results),
         frames_written=sum(r.frames_written for r in results),
     )
+
+
+def _checked_inputs(
+    bags: Sequence[str | Path], settings: GenerateSettings, workers: int
+) -> list[str]:
+    """The bag paths, once the counts, the profile and the paths are valid (one line each)."""
+    if settings.replays < 1:
+        raise InputError("must be >= 1", field="replays")
+    if workers < 1:
+        raise InputError("must be >= 1", field="workers")
+    if settings.domain not in DOMAINS:
+        raise InputError(f"must be one of {', '.join(DOMAINS)}", field="domain")
+    bag_paths = [str(b) for b in bags]
+    if not bag_paths:
+        raise InputError("no bag given")
+    for b in bag_paths:
+        if not Path(b).exists():
+            raise InputError("file not found", path=b)
+    return bag_paths
+
+
+@dataclass
+class _Survey:
+    """What the driver learns from reading every bag once."""
+
+    frames: list[int]  # frames per replay of each bag
+    needles: dict[str, dict[str, Any] | None]  # each bag's recorded needle spec
+    widest: SceneLayout | None  # the staged layout with the most arms (None: the default's)
+
+
+def _survey_bags(bag_paths: Sequence[str], settings: GenerateSettings) -> _Survey:
+    """Read every bag as the replays will (staged when a real robot's)."""
+    survey = _Survey([], {}, None)
+    for b in bag_paths:
+        rec = load_recording(b, settings)
+        survey.frames.append(len(frame_times(rec.start, rec.end, settings.period)))
+        survey.needles[b] = rec.meta.get("needle")
+        arms = (survey.widest or DEFAULT_LAYOUT).arms
+        if rec.layout is not None and len(rec.layout.arms) > len(arms):
+            survey.widest = rec.layout
+    return survey
+
+
+def _run_units(
+    units: list[ReplayUnit], frames_per_bag: list[int], runner: Executor, progress: bool
+) -> list[ReplayResult]:
+    """Run every replay, with a progress bar over all their frames."""
+    total = sum(frames_per_bag[u.bag_index] for u in units)
+    bar = tqdm(total=total, unit="frame", desc="generate", disable=not progress, smoothing=0.1)
+    try:
+        results: list[ReplayResult] = runner.map(_replay_unit, units, on_progress=bar.update)
+        for unit, res in zip(units, results, strict=True):
+            # frames a resumed run did not need to render
+            bar.update(frames_per_bag[unit.bag_index] - res.frames_rendered)
+    finally:
+        bar.close()
+    return results

@@ -80,14 +80,16 @@ def _log_rotation(R: F64) -> F64:
     if angle < 1e-6:
         return 0.5 * axis  # first order: sin(a) ≈ a
     if np.pi - angle > 1e-4:
-        return axis * (angle / (2.0 * np.sin(angle)))
+        scaled: F64 = axis * (angle / (2.0 * np.sin(angle)))
+        return scaled
     # Near π the antisymmetric part vanishes: read the axis from the symmetric part.
     sym = 0.5 * (R + np.eye(3))
     k = int(np.argmax(np.diag(sym)))
     u = sym[:, k] / np.sqrt(max(sym[k, k], 1e-300))
     if axis @ u < 0.0:
         u = -u
-    return angle * u / np.linalg.norm(u)
+    out: F64 = angle * u / np.linalg.norm(u)
+    return out
 
 
 def _residual(T: F64, T_target: F64) -> tuple[F64, float, float]:
@@ -135,7 +137,8 @@ def cold_seed(T_base_tip: ArrayLike, roll: float = 0.0) -> F64:
     q2 = -np.arcsin(np.clip(d[1], -1.0, 1.0))
     q1 = np.arctan2(d[0], -d[2])
     q3 = dist + L_RCC - L_TOOL
-    return np.clip(np.array([q1, q2, q3, roll, 0.0, 0.0]), _LO, _HI)
+    q: F64 = np.clip(np.array([q1, q2, q3, roll, 0.0, 0.0]), _LO, _HI)
+    return q
 
 
 def _solve_from(

@@ -4,8 +4,12 @@ Units: metres and radians (ROS / CRTK SI), 4×4 homogeneous transforms ``T_a_b``
 coordinates in frame ``b`` to frame ``a``. The world frame has +Z up; the tissue phantom's
 top surface is the plane z = 0 around the origin.
 
-PSM: modified Denavit–Hartenberg parameters of the Large Needle Driver (tool 400006) from
-surgical_robotics_challenge ``kinematics/psmFK.py`` (see ``surgical_scene_facts.md`` §2.3).
+PSM: modified Denavit–Hartenberg chains (:class:`PsmKinematics`, the dVRK's convention:
+``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` per link, then a fixed tool-tip offset). Two sources:
+the simulator's Large Needle Driver (:data:`SIMULATOR_PSM`, surgical_robotics_challenge
+``kinematics/psmFK.py``, see ``surgical_scene_facts.md`` §2.3), which replays bopsurg's own and
+the AMBF recordings, and the dVRK's own tool definitions
+(:mod:`~bopsurg.generators.dvrk_tools`), which replay recordings of real robots.
 The base frame's origin is the remote centre of motion (RCM); at zero outer joints the shaft
 points along −Z of the base frame. Joints ``q = (outer_yaw, outer_pitch, insertion [m],
 outer_roll, wrist_pitch, wrist_yaw)``; the jaw angle is separate.
@@ -25,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 
 F64 = NDArray[np.float64]
 
-# Lengths of the Large Needle Driver 400006, m.
+# Lengths of the simulator's Large Needle Driver 400006, m (psmFK.py, paper era).
 L_RCC = 0.4389
 L_TOOL = 0.416
 L_PITCH2YAW = 0.009
@@ -75,14 +79,127 @@ def mdh(alpha: float, a: float, theta: float, d: float) -> F64:
     )
 
 
-def psm_link_frames(q: ArrayLike) -> list[F64]:
+@dataclass(frozen=True)
+class DhJoint:
+    """One link of a modified-DH chain, as the dVRK's kinematics files write it.
+
+    The link transform is ``Rx(alpha) Tx(a) Rz(theta) Tz(d)``; the joint value ``q`` plus
+    ``offset`` adds to ``theta`` (revolute) or to ``d`` (prismatic). Units: rad and m.
+    """
+
+    alpha: float
+    a: float
+    theta: float
+    d: float
+    offset: float = 0.0
+    prismatic: bool = False
+
+
+@dataclass(frozen=True)
+class PsmKinematics:
+    """A PSM with one tool: six DH joints, the fixed tool-tip offset, limits and provenance.
+
+    Attributes:
+        name: Tool name (``LARGE_NEEDLE_DRIVER_400006``, ``simulator``, ...).
+        joints: The six joints in CRTK order (outer yaw, outer pitch, insertion, roll,
+            wrist pitch, wrist yaw).
+        tip_offset: (4, 4) fixed transform from the last joint's frame to the tool tip.
+        joint_limits: (6, 2) lower and upper limits, rad and m.
+        jaw_limits: Jaw opening limits, rad.
+        source: Where the numbers come from (repository, path, commit).
+    """
+
+    name: str
+    joints: tuple[DhJoint, ...]
+    tip_offset: tuple[tuple[float, ...], ...]
+    joint_limits: tuple[tuple[float, float], ...]
+    jaw_limits: tuple[float, float]
+    source: str
+
+    def limits(self) -> F64:
+        """(6, 2) joint limits as an array."""
+        return np.asarray(self.joint_limits, dtype=np.float64)
+
+    def link_frames(self, q: ArrayLike) -> list[F64]:
+        """Seven 4×4 ``T_base_link`` for joints ``q`` (6,): six links and the tool tip."""
+        q = np.asarray(q, dtype=np.float64)
+        frames = []
+        T = np.eye(4)
+        for j, qj in zip(self.joints, q, strict=True):
+            theta = j.theta if j.prismatic else j.theta + qj + j.offset
+            d = j.d + qj + j.offset if j.prismatic else j.d
+            T = T @ mdh(j.alpha, j.a, theta, d)
+            frames.append(T)
+        frames.append(T @ np.asarray(self.tip_offset, dtype=np.float64))
+        return frames
+
+    def tip_poses(self, q: ArrayLike) -> F64:
+        """Tool-tip frames ``T_base_tip`` (N, 4, 4) for joints ``q`` (N, 6), vectorised."""
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+        T = np.broadcast_to(np.eye(4), (len(q), 4, 4)).copy()
+        for k, j in enumerate(self.joints):
+            zeros = np.zeros(len(q))
+            theta = j.theta + zeros if j.prismatic else j.theta + q[:, k] + j.offset
+            d = j.d + q[:, k] + j.offset if j.prismatic else j.d + zeros
+            T = T @ mdh_batch(j.alpha, j.a, theta, d)
+        out: F64 = T @ np.asarray(self.tip_offset, dtype=np.float64)
+        return out
+
+
+#: The simulator's Large Needle Driver (surgical_robotics_challenge ``kinematics/psmFK.py``,
+#: see the module docstring): what bopsurg's own and AMBF recordings are replayed with.
+SIMULATOR_PSM = PsmKinematics(
+    name="simulator",
+    joints=(
+        DhJoint(np.pi / 2, 0.0, 0.0, 0.0, np.pi / 2),
+        DhJoint(-np.pi / 2, 0.0, 0.0, 0.0, -np.pi / 2),
+        DhJoint(np.pi / 2, 0.0, 0.0, 0.0, -L_RCC, prismatic=True),
+        DhJoint(0.0, 0.0, 0.0, L_TOOL),
+        DhJoint(-np.pi / 2, 0.0, 0.0, 0.0, -np.pi / 2),
+        DhJoint(-np.pi / 2, L_PITCH2YAW, 0.0, 0.0, -np.pi / 2),
+    ),
+    tip_offset=tuple(
+        tuple(float(x) for x in row) for row in mdh(-np.pi / 2, 0.0, np.pi / 2, L_YAW2CTRLPNT)
+    ),
+    joint_limits=(
+        (-1.605, 1.599),
+        (-0.925, 0.925),
+        (0.0, 0.240),
+        (-3.054, 3.054),
+        (-1.396, 1.396),
+        (-1.396, 1.396),
+    ),
+    jaw_limits=(-0.698, 1.396),
+    source="surgical-robotics-ai/surgical_robotics_challenge kinematics/psmFK.py (paper era)",
+)
+
+
+def mdh_batch(alpha: float, a: float, theta: F64, d: F64) -> F64:
+    """:func:`mdh` for arrays ``theta`` and ``d`` (N,): (N, 4, 4)."""
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    ct, st = np.cos(theta), np.sin(theta)
+    T = np.zeros((len(theta), 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 3] = ct, -st, a
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2], T[:, 1, 3] = st * ca, ct * ca, -sa, -sa * d
+    T[:, 2, 0], T[:, 2, 1], T[:, 2, 2], T[:, 2, 3] = st * sa, ct * sa, ca, ca * d
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def psm_link_frames(q: ArrayLike, kinematics: PsmKinematics | None = None) -> list[F64]:
     """Frames of the PSM links in the base (RCM) frame for joints ``q`` (6,).
+
+    Args:
+        q: (6,) joints, rad and m.
+        kinematics: The PSM and tool (default: the simulator's, :data:`SIMULATOR_PSM`).
 
     Returns:
         Seven 4×4 transforms ``T_base_link``: outer yaw, outer pitch, insertion, roll (its
         origin is the shaft's distal end, at the wrist pitch axis), wrist pitch, wrist yaw
         (jaw pivot) and the tool tip (control point between the jaws).
     """
+    if kinematics is not None and kinematics is not SIMULATOR_PSM:
+        return kinematics.link_frames(q)
     q = np.asarray(q, dtype=np.float64)
     rows = (
         (np.pi / 2, 0.0, q[0] + np.pi / 2, 0.0),
@@ -101,9 +218,9 @@ def psm_link_frames(q: ArrayLike) -> list[F64]:
     return frames
 
 
-def psm_tip_pose(q: ArrayLike) -> F64:
+def psm_tip_pose(q: ArrayLike, kinematics: PsmKinematics | None = None) -> F64:
     """Tool-tip frame ``T_base_tip`` (z along the jaws, pointing away from the wrist)."""
-    return psm_link_frames(q)[-1]
+    return psm_link_frames(q, kinematics)[-1]
 
 
 def look_rotation(forward: ArrayLike, up_hint: ArrayLike = (0.0, 0.0, 1.0)) -> F64:
@@ -147,30 +264,52 @@ def rot_z(a: float) -> F64:
 
 @dataclass(frozen=True)
 class SceneLayout:
-    """Where the robots stand relative to the tissue (world frame, m).
+    """Where the robots stand relative to the tissue (world frame, m), and which robots.
 
     Attributes:
-        psm_rcm: RCM position of each PSM.
-        workspace_centre: The point the PSM shafts and the endoscope aim at (on the tissue).
+        psm_rcm: RCM position of each PSM, in ``arms`` order.
+        workspace_centre: The point the PSM shafts aim at (on the tissue); the endoscope's
+            too unless ``view_target`` is set.
         ecm_frame_origin: Origin of the ECM camera frame (the camera sits
             :data:`ECM_CAMERA_OFFSET` in front of it).
+        arms: The PSMs in the scene (``psm1``, ``psm2``, ``psm3``); others are not rendered.
+        kinematics: The PSMs' kinematics and tool (:data:`SIMULATOR_PSM`, or a dVRK tool of
+            :mod:`~bopsurg.generators.dvrk_tools`).
+        view_target: The point the endoscope looks at when it is not ``workspace_centre``
+            (a real recording's tool-tip workspace), or None.
     """
 
     psm_rcm: tuple[tuple[float, float, float], ...] = ((0.075, -0.02, 0.10), (-0.075, -0.02, 0.10))
     workspace_centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
     ecm_frame_origin: tuple[float, float, float] = (0.0, -0.07, 0.085)
+    arms: tuple[str, ...] = ("psm1", "psm2")
+    kinematics: PsmKinematics = SIMULATOR_PSM
+    view_target: tuple[float, float, float] | None = None
 
     def psm_base(self, index: int) -> F64:
-        """``T_world_base`` of PSM ``index`` (0 = psm1): base −Z points at the workspace centre."""
+        """``T_world_base`` of PSM ``index`` (into ``arms``): base −Z points at the workspace
+        centre."""
         rcm = np.asarray(self.psm_rcm[index])
         down = np.asarray(self.workspace_centre) - rcm
         R = look_rotation(-down, up_hint=(0.0, -1.0, 0.0))
         return pose(R, rcm)
 
+    def arm_base(self, arm: str) -> F64:
+        """``T_world_base`` of the arm named ``arm``.
+
+        Raises:
+            ValueError: The arm is not in the layout.
+        """
+        if arm not in self.arms:
+            raise ValueError(f"unknown arm {arm!r}; expected one of {self.arms}")
+        return self.psm_base(self.arms.index(arm))
+
     def ecm_base(self) -> F64:
-        """``T_world_ecmframe`` at zero ECM joints: looking at the workspace centre."""
+        """``T_world_ecmframe`` at zero ECM joints: looking at the view target (default: the
+        workspace centre)."""
         origin = np.asarray(self.ecm_frame_origin)
-        forward = np.asarray(self.workspace_centre) - origin
+        target = self.workspace_centre if self.view_target is None else self.view_target
+        forward = np.asarray(target) - origin
         return pose(look_rotation(forward), origin)
 
 

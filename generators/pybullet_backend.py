@@ -136,7 +136,8 @@ def projection_matrix(
 
 def view_matrix(T_world_cam: F64) -> list[float]:
     """OpenGL view matrix (column-major) of a camera pose with OpenCV axes, m."""
-    return (_CV2GL @ np.linalg.inv(T_world_cam)).T.ravel().tolist()
+    values: list[float] = (_CV2GL @ np.linalg.inv(T_world_cam)).T.ravel().tolist()
+    return values
 
 
 def depth_buffer_to_mm(
@@ -290,7 +291,7 @@ def load_egl(client: int) -> int:
         plugin = p.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=client)
     if plugin < 0:
         raise RuntimeError("pybullet's EGL renderer plugin failed to load")
-    return plugin
+    return int(plugin)
 
 
 def write_obj(
@@ -366,12 +367,15 @@ def upload_part(client: int, part: VisualPart, folder: Path, texture: int | None
     body = p.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=client)
     if texture is not None:
         p.changeVisualShape(body, -1, textureUniqueId=texture, physicsClientId=client)
-    return body
+    return int(body)
 
 
 def _quaternions(poses: list[F64]) -> NDArray[np.float64]:
     """(N, 4) xyzw quaternions of 4×4 poses (one scipy call for all)."""
-    return Rotation.from_matrix(np.stack([T[:3, :3] for T in poses])).as_quat()
+    quats: NDArray[np.float64] = Rotation.from_matrix(
+        np.stack([T[:3, :3] for T in poses])
+    ).as_quat()
+    return quats
 
 
 @dataclass(frozen=True)
@@ -540,7 +544,7 @@ class PyBulletBackend(ClosesOnExit):
         for k, name in enumerate(assets.annotated):
             self._lut[self._bodies[name] + 1] = k + 1
         self._poses = {name: np.eye(4) for name in assets.parts}
-        state = default_state()
+        state = default_state(scene.layout.arms)
         self._jaws = state.jaws
         needle = scene.needle_model_pose(state.needle_pose)
         self._apply_poses(part_poses(scene.layout, state.psm_joints, state.jaws, needle))
@@ -593,7 +597,8 @@ class PyBulletBackend(ClosesOnExit):
         _, assets, _ = self._require()
         if name not in assets.parts:
             raise KeyError(f"no object {name!r}; annotated: {list(assets.annotated)}")
-        return assets.parts[name].model
+        model: ObjectModel = assets.parts[name].model
+        return model
 
     # ---------------------------------------------------------------------- state
 
@@ -610,9 +615,10 @@ class PyBulletBackend(ClosesOnExit):
         needle = np.asarray(state.needle_pose, dtype=np.float64)
         if needle.shape != (4, 4):
             raise ValueError(f"needle_pose must be 4x4, got shape {needle.shape}")
-        unknown = sorted(set(state.jaws) - set(ARMS))
+        arms = scene.layout.arms
+        unknown = sorted(set(state.jaws) - set(arms))
         if unknown:
-            raise ValueError(f"unknown arm {unknown[0]!r} in jaws; expected one of {ARMS}")
+            raise ValueError(f"unknown arm {unknown[0]!r} in jaws; expected one of {arms}")
         jaws = dict(self._jaws)
         jaws.update({k: float(v) for k, v in state.jaws.items()})
         poses = part_poses(scene.layout, state.psm_joints, jaws, scene.needle_model_pose(needle))

@@ -27,7 +27,7 @@ import pybullet as p
 from numpy.typing import NDArray
 
 from bopsurg.bop.meshes import ObjectModel
-from bopsurg.generators.backend import ARMS
+from bopsurg.generators.backend import ALL_ARMS
 from bopsurg.generators.domain import MARK_COLOURS, Appearance
 from bopsurg.generators.pybullet_backend import upload_part, write_obj
 from bopsurg.generators.pybullet_scene import (
@@ -208,7 +208,7 @@ def apply_appearance(client: int, bodies: Mapping[str, int], appearance: Appeara
         "jaw1": a.jaw_rgba,
         "jaw2": a.jaw_rgba,
     }
-    for arm in ARMS:
+    for arm in ALL_ARMS:
         for part, rgba in looks.items():
             name = f"{arm}_{part}"
             if name in bodies:

@@ -48,13 +48,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.bop.meshes import ObjectModel
-from bopsurg.generators.backend import ARMS
-from bopsurg.generators.kinematics import SceneLayout, psm_link_frames, rot_x
+from bopsurg.generators.backend import ARMS as ARMS  # re-exported: the default scene's arms
+from bopsurg.generators.kinematics import PsmKinematics, SceneLayout, psm_link_frames, rot_x
 from bopsurg.needle import NeedleSpec, needle_mesh
 
 F64 = NDArray[np.float64]
 
-#: Arms, in annotation order; index i is ``SceneLayout.psm_base(i)``.
+#: A scene's arms are ``SceneLayout.arms``, in annotation order; index i is
+#: ``SceneLayout.psm_base(i)``.
 #: Instrument parts per arm; the annotated ones (with ``annotate_instruments``) are marked.
 INSTRUMENT_PARTS = ("shaft", "wrist", "yaw", "jaw1", "jaw2")
 ANNOTATED_INSTRUMENT_PARTS = ("wrist", "jaw1", "jaw2")
@@ -171,7 +172,7 @@ def _merge(models: list[ObjectModel]) -> ObjectModel:
     return ObjectModel(
         pts=np.concatenate([m.pts for m in models]),
         faces=np.concatenate([m.faces + o for m, o in zip(models, offsets, strict=True)]),
-        normals=np.concatenate([m.normals for m in models]),  # type: ignore[misc]
+        normals=np.concatenate([m.normals for m in models]),  # type: ignore[misc, unused-ignore]
     )
 
 
@@ -386,18 +387,21 @@ def lnd_instrument_models() -> dict[str, ObjectModel]:
     }
 
 
-def instrument_part_poses(q: ArrayLike, jaw: float, T_world_base: F64) -> dict[str, F64]:
+def instrument_part_poses(
+    q: ArrayLike, jaw: float, T_world_base: F64, kinematics: PsmKinematics | None = None
+) -> dict[str, F64]:
     """World poses (4×4, m) of one instrument's part frames.
 
     Args:
         q: (6,) PSM joints (rad, insertion in m).
         jaw: Jaw opening angle, rad (total angle between the jaws).
         T_world_base: ``T_world_base`` of the arm (its RCM frame).
+        kinematics: The PSM and tool (default: the simulator's).
 
     Returns:
         ``T_world_part`` by part name (:data:`INSTRUMENT_PARTS`).
     """
-    frames = psm_link_frames(q)
+    frames = psm_link_frames(q, kinematics)
     roll, pitch, yaw, tip = (T_world_base @ frames[k] for k in (3, 4, 5, 6))
     half = np.eye(4)
     half[:3, :3] = rot_x(-0.5 * jaw)
@@ -466,8 +470,8 @@ def _pad_grid(shape: str = "incisions") -> tuple[F64, F64]:
         ys.append(np.array([-INCISION_HALF_LENGTH, -INCISION_HALF_LENGTH + 0.1]))
         ys.append(np.array([INCISION_HALF_LENGTH - 0.1, INCISION_HALF_LENGTH]))
     # Unique to 1 µm (floating-point twins would make degenerate triangles).
-    gx = np.unique(np.round(np.concatenate(xs), 6))
-    gy = np.unique(np.round(np.concatenate(ys), 6))
+    gx: F64 = np.unique(np.round(np.concatenate(xs), 6)).astype(np.float64, copy=False)
+    gy: F64 = np.unique(np.round(np.concatenate(ys), 6)).astype(np.float64, copy=False)
     return gx, gy
 
 
@@ -689,7 +693,8 @@ def paint_marks(
     shade = base.mean(axis=2, keepdims=True) / max(float(base.mean()), 1e-6)
     mark = np.asarray(rgb, np.float64) * (0.85 + 0.15 * shade)
     out = base * (1.0 - alpha) + alpha * mark
-    return (np.clip(out, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    painted: NDArray[np.uint8] = (np.clip(out, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return painted
 
 
 @functools.lru_cache(maxsize=4)
@@ -747,7 +752,7 @@ def build_scene(
         "jaw1": (JAW_RGBA, METAL_SPECULAR),
         "jaw2": (JAW_RGBA, METAL_SPECULAR),
     }
-    for arm in ARMS:
+    for arm in layout.arms:
         models = instrument_models() if instruments == "simple" else lnd_instrument_models()
         for part, model in models.items():
             rgba, spec = looks[part]
@@ -765,7 +770,7 @@ def build_scene(
     )
     annotated = ["needle"]
     if annotate_instruments:
-        annotated += [f"{arm}_{part}" for arm in ARMS for part in ANNOTATED_INSTRUMENT_PARTS]
+        annotated += [f"{arm}_{part}" for arm in layout.arms for part in ANNOTATED_INSTRUMENT_PARTS]
     textures = {"skin": skin_texture(texture_seed), "drape": drape_texture(texture_seed)}
     return SceneAssets(parts=parts, textures=textures, annotated=tuple(annotated), layout=layout)
 
@@ -780,7 +785,7 @@ def part_poses(
 
     Args:
         layout: Robot layout.
-        psm_joints: (6,) joints by arm name (:data:`ARMS`); arms missing here are left out.
+        psm_joints: (6,) joints by arm name (``layout.arms``); arms missing here are left out.
         jaws: Jaw angle by arm name, rad (0 when missing).
         needle_pose: ``T_world_needle``, or None to leave the needle out.
 
@@ -789,10 +794,8 @@ def part_poses(
     """
     out: dict[str, F64] = {}
     for arm, q in psm_joints.items():
-        if arm not in ARMS:
-            raise ValueError(f"unknown arm {arm!r}; expected one of {ARMS}")
-        base = layout.psm_base(ARMS.index(arm))
-        poses = instrument_part_poses(q, float(jaws.get(arm, 0.0)), base)
+        base = layout.arm_base(arm)
+        poses = instrument_part_poses(q, float(jaws.get(arm, 0.0)), base, layout.kinematics)
         out.update({f"{arm}_{k}": v for k, v in poses.items()})
     if needle_pose is not None:
         out["needle"] = np.asarray(needle_pose, dtype=np.float64)

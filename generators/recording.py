@@ -24,6 +24,7 @@ from bopsurg.generators.backend import (
     PARKED_PSM_JOINTS,
     SceneState,
 )
+from bopsurg.generators.kinematics import SceneLayout
 
 F64 = NDArray[np.float64]
 Stream = tuple[F64, F64]  # (times (T,) s, values (T, ...))
@@ -46,6 +47,14 @@ class Recording:
         needle_pose: (times, (T, 4, 4)) ``T_world_needle``, m, or None.
         source: Where it came from (a bag path, or the generator and seed).
         meta: JSON-serialisable facts: seed, generator, layout, needle spec, events, ...
+        psm_poses: Per arm: (times, (T, 4, 4)) the tool tip's recorded Cartesian pose
+            (``measured_cp``), m, in the frame the robot reported it in (not the world's);
+            for checks, never replayed.
+        layout: Where the recording's arms stand in bopsurg's world and with which
+            kinematics (a real robot's recording placed by
+            :func:`~bopsurg.generators.staging.stage_recording`); None: the default layout.
+        robot: Whose kinematics replay it: ``simulator`` (bopsurg's, AMBF) or ``dvrk`` (a
+            real robot's recording; see the topic map's ``robot``).
     """
 
     psm_joints: dict[str, Stream] = field(default_factory=dict)
@@ -54,6 +63,9 @@ class Recording:
     needle_pose: Stream | None = None
     source: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
+    psm_poses: dict[str, Stream] = field(default_factory=dict)
+    layout: SceneLayout | None = None
+    robot: str = "simulator"
 
     def streams(self) -> list[tuple[str, str | None, Stream]]:
         """Every stream as (kind, arm or None, (times, values))."""
@@ -89,9 +101,13 @@ class Recording:
         Joints and jaws interpolate linearly; the needle pose linearly in translation and by
         slerp in rotation. Streams the recording lacks take the default scene state of
         :func:`~bopsurg.generators.backend.default_state`: arms ``psm1`` and ``psm2`` parked,
-        the ECM at its base pose, the needle on the tissue.
+        the ECM at its base pose, the needle on the tissue. With a ``layout``, the state holds
+        exactly its arms.
         """
-        arms = sorted({*ARMS, *self.psm_joints, *self.jaws})
+        if self.layout is not None:
+            arms = list(self.layout.arms)
+        else:
+            arms = sorted({*ARMS, *self.psm_joints, *self.jaws})
         joints = {
             arm: _interp(*self.psm_joints[arm], t)
             if arm in self.psm_joints
@@ -130,16 +146,17 @@ def _interp(times: F64, values: F64, t: float) -> F64:
     i, w = _bracket(times, t)
     if len(times) == 1:
         return np.array(values[0], dtype=np.float64)
-    return (1.0 - w) * values[i] + w * values[i + 1]
+    out: F64 = (1.0 - w) * values[i] + w * values[i + 1]
+    return out
 
 
 def _interp_pose(times: F64, poses: F64, t: float) -> F64:
     i, w = _bracket(times, t)
     if len(times) == 1 or w == 0.0:
-        return poses[i].copy()
+        return np.array(poses[i], dtype=np.float64)
     T_a, T_b = poses[i], poses[i + 1]
     if w == 1.0:
-        return T_b.copy()
+        return np.array(T_b, dtype=np.float64)
     rv = Rotation.from_matrix(T_a[:3, :3].T @ T_b[:3, :3]).as_rotvec()
     T = np.eye(4)
     T[:3, :3] = T_a[:3, :3] @ Rotation.from_rotvec(w * rv).as_matrix()

@@ -57,7 +57,7 @@ from bopsurg.generators.backend import (
     RenderedFrame,
 )
 from bopsurg.generators.domain import DEFAULT_DOMAIN, DOMAIN_REVISIONS, DomainReplay, draw_domain
-from bopsurg.generators.kinematics import ecm_camera_pose
+from bopsurg.generators.kinematics import DEFAULT_LAYOUT, SceneLayout, ecm_camera_pose
 from bopsurg.generators.recording import Recording
 from bopsurg.generators.viewpoints import ReplayDraw, light_in_world
 from bopsurg.geometry import intrinsics_from_fov
@@ -73,6 +73,11 @@ DEFAULT_K = tuple(
 )
 
 SCENE_RECORD = "bopsurg_scene.json"
+
+
+#: Settings added after datasets were generated: recorded only when not at these defaults, so
+#: those datasets still resume.
+_NEW_DEFAULTS: dict[str, Any] = {"needle_holder": "auto", "psm_tool": None, "joint_source": None}
 
 
 @dataclass(frozen=True)
@@ -98,6 +103,13 @@ class GenerateSettings:
             ``bopsurg annotate`` uses); ``None`` uses the backend's own.
         rgb_format: ``png`` (BOP real) or ``jpg`` (BOP pbr).
         domain: Randomisation profile (:data:`~bopsurg.generators.domain.DOMAINS`).
+        needle_holder: For recordings of real robots (no needle pose): the arm holding the
+            needle, ``auto`` (the recorded arm, or the first) or ``none`` (on the tissue).
+        psm_tool: For recordings of real robots: the dVRK tool whose kinematics pose the
+            arms (:data:`~bopsurg.generators.dvrk_tools.TOOL_NAMES`); None: the Large Needle
+            Driver 400006.
+        joint_source: ``measured`` or ``setpoint``: which joint topics to read; None: the
+            first the topic map finds.
     """
 
     replays: int = 20
@@ -112,16 +124,23 @@ class GenerateSettings:
     stereo: bool = False
     topic_map: str = "crtk"
     backend: str = "pybullet"
-    backend_config: dict = field(default_factory=dict)
+    backend_config: dict[str, Any] = field(default_factory=dict)
     renderer: str | None = "pybullet"
     rgb_format: str = "png"
     domain: str = DEFAULT_DOMAIN
+    needle_holder: str = "auto"
+    psm_tool: str | None = None
+    joint_source: str | None = None
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         """JSON-ready form: ``domain`` only when not the default (as before it existed), then
         with the profile's ``domain_revision`` (see
-        :data:`~bopsurg.generators.domain.DOMAIN_REVISIONS`), so resuming compares it too."""
+        :data:`~bopsurg.generators.domain.DOMAIN_REVISIONS`), so resuming compares it too;
+        the real-recording options likewise only when set."""
         out = asdict(self)
+        for key, default in _NEW_DEFAULTS.items():
+            if out[key] == default:
+                del out[key]
         if self.domain == DEFAULT_DOMAIN:
             del out["domain"]
         elif self.domain in DOMAIN_REVISIONS:
@@ -232,7 +251,7 @@ class _SceneFiles:
         self.camera: dict[int, CameraInfo] = {}
         self.gt: dict[int, list[GtPose]] = {}
         self.gt_info: dict[int, list[GtInfo]] = {}
-        self.record: dict = {}
+        self.record: dict[str, Any] = {}
 
     def load(self) -> None:
         # A SIGKILL can leave a writer's temporary file behind; this unit owns the folder.
@@ -267,15 +286,20 @@ class _View:
 
     @classmethod
     def of(
-        cls, settings: GenerateSettings, draw: ReplayDraw, offset: np.ndarray | None = None
+        cls,
+        settings: GenerateSettings,
+        draw: ReplayDraw,
+        offset: np.ndarray | None = None,
+        layout: SceneLayout | None = None,
     ) -> _View:
-        """The views of a draw; ``offset`` (4×4 ``T_cam_newcam``) moves the stereo rig."""
-
-        T_left = ecm_camera_pose(draw.ecm_joints)
+        """The views of a draw; ``offset`` (4×4 ``T_cam_newcam``) moves the stereo rig;
+        ``layout`` places the endoscope (default: the default layout)."""
+        layout = layout or DEFAULT_LAYOUT
+        T_left = ecm_camera_pose(draw.ecm_joints, layout)
         T_world_cam = T_left if offset is None else T_left @ offset
         right = None
         if settings.stereo:  # the rig moves as one: the right eye keeps its pose to the left
-            T_right = ecm_camera_pose(draw.ecm_joints, right=True)
+            T_right = ecm_camera_pose(draw.ecm_joints, layout, right=True)
             if offset is not None:
                 T_right = T_world_cam @ np.linalg.solve(T_left, T_right)
             right = _camera(settings, T_right)
@@ -344,7 +368,8 @@ def run_replay(
     Args:
         unit: The replay.
         backend: A backend with the scene loaded (see :meth:`RenderBackend.load_scene`).
-        recording_loader: ``(bag_path, topic_map) -> Recording`` (``bag_reader.read_bag``).
+        recording_loader: ``(bag_path, topic_map) -> Recording`` (``bag_reader.read_bag``);
+            a staged recording's ``layout`` places the endoscope (and must be the backend's).
         amodal: Renders each GT instance alone from its *written* model and pose, exactly as
             ``bopsurg annotate`` will, so re-annotating the files reproduces the generator's
             masks pixel for pixel; without it the backend's own object-alone render is used.
@@ -361,12 +386,13 @@ def run_replay(
         return ReplayResult(unit.scene_id, 0, len(files.gt), skipped=True)
     recording = recording_loader(unit.bag, settings.topic_map)
     times = frame_times(recording.start, recording.end, settings.period)
-    view = _View.of(settings, draw)
+    layout = recording.layout
+    view = _View.of(settings, draw, layout=layout)
     dressing = None
     if domain is not None:  # --domain other than paper: move the camera, dress the scene
         needle = [recording.state_at(float(t)).needle_pose[:3, 3] for t in times]
         dressing = DomainReplay(domain, backend, np.array(needle), view.T_world_cam)
-        view = _View.of(settings, draw, dressing.camera_offset)
+        view = _View.of(settings, draw, dressing.camera_offset, layout)
     files.record = files.record or _new_record(unit, draw, len(times), dressing)
     start = int(files.record["next_frame"])
     objects = backend.annotated_objects()

@@ -1,12 +1,18 @@
 """Topic maps: which bag topic carries which stream of a recording, and how to read it.
 
 A topic map (``topic_maps/crtk.toml``, ``topic_maps/ambf.toml``, or a path) lists *sources*:
-for each stream (``psm_joints``, ``jaw``, ``ecm_joints``, ``needle_pose``, ``meta``; per
-``arm`` for the first two) the candidate topics in order of preference, each with its message
-type, the ``field`` holding the value (dotted attribute path), an optional ``scale`` (number or
-per-element list, multiplied on read and divided on write; e.g. 0.1 turns AMBF simulation units
-into metres) and ``indices`` (elements to take). ``required = true`` makes a stream mandatory.
+for each stream (``psm_joints``, ``jaw``, ``psm_pose``, ``ecm_joints``, ``needle_pose``,
+``meta``; per ``arm`` for the first three) the candidate topics in order of preference, each
+with its message type, the ``field`` holding the value (dotted attribute path), an optional
+``scale`` (number or per-element list, multiplied on read and divided on write; e.g. 0.1 turns
+AMBF simulation units into metres) and ``indices`` (elements to take). ``required = true``
+makes a stream mandatory.
 A ``[types]`` table registers custom messages: ``"pkg/msg/Name" = "relative/path/Name.msg"``.
+
+Top-level keys: ``robot`` says whose kinematics replay the map's recordings (``simulator``,
+the default; ``dvrk``; or ``auto``: the simulator's when the bag carries a meta message, as
+every bag bopsurg writes does, else the real dVRK's) and ``require_one_arm = true`` makes the joints
+of at least one arm mandatory.
 """
 
 from __future__ import annotations
@@ -22,8 +28,10 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from bopsurg.errors import InputError
 
-STREAMS = ("psm_joints", "jaw", "ecm_joints", "needle_pose", "meta")
-_PER_ARM = ("psm_joints", "jaw")
+STREAMS = ("psm_joints", "jaw", "psm_pose", "ecm_joints", "needle_pose", "meta")
+_PER_ARM = ("psm_joints", "jaw", "psm_pose")
+#: Whose kinematics replay a map's recordings.
+ROBOTS = ("auto", "simulator", "dvrk")
 TOPIC_MAP_DIR = Path(__file__).parent / "topic_maps"
 
 
@@ -36,8 +44,9 @@ class Source:
     """One candidate topic of a stream in a topic map.
 
     Attributes:
-        stream: ``psm_joints``, ``jaw``, ``ecm_joints``, ``needle_pose`` or ``meta``.
-        arm: The arm (``psm_joints`` and ``jaw`` only), else None.
+        stream: ``psm_joints``, ``jaw``, ``psm_pose``, ``ecm_joints``, ``needle_pose`` or
+            ``meta``.
+        arm: The arm (``psm_joints``, ``jaw`` and ``psm_pose`` only), else None.
         topic: Topic name.
         msgtype: Message type, normalised to ``pkg/msg/Name``.
         field: Dotted attribute path to the value inside the message.
@@ -70,12 +79,24 @@ class TopicMap:
         path: The TOML file.
         sources: Candidate topics, in order of preference within each stream.
         types: Custom message types: type name → ``.msg`` file.
+        robot: ``auto``, ``simulator`` or ``dvrk`` (:data:`ROBOTS`); ``simulator`` unless
+            the file says.
+        require_one_arm: At least one arm's ``psm_joints`` must be in the bag.
     """
 
     name: str
     path: Path
     sources: tuple[Source, ...]
     types: Mapping[str, Path]
+    robot: str = "simulator"
+    require_one_arm: bool = False
+
+    def robot_of(self, has_meta: bool) -> str:
+        """``simulator`` or ``dvrk`` for a bag with or without a meta message (``auto``: a bag
+        bopsurg wrote, with its meta, was made with the simulator's kinematics)."""
+        if self.robot != "auto":
+            return self.robot
+        return "simulator" if has_meta else "dvrk"
 
     def candidates(self, key: tuple[str, str | None]) -> list[Source]:
         """Sources of one stream, in order of preference."""
@@ -122,7 +143,18 @@ def load_topic_map(topic_map: str | Path) -> TopicMap:
     if not isinstance(raw, list) or not raw:
         raise BagError("no [[source]] entries", path=path)
     sources = tuple(_parse_source(entry, i, path) for i, entry in enumerate(raw))
-    return TopicMap(str(data.get("name", path.stem)), path, sources, types)
+    # A map written before real recordings were staged replays as it always did.
+    robot = str(data.get("robot", "simulator"))
+    if robot not in ROBOTS:
+        raise BagError(f"must be one of {', '.join(ROBOTS)}", path=path, field="robot")
+    return TopicMap(
+        str(data.get("name", path.stem)),
+        path,
+        sources,
+        types,
+        robot=robot,
+        require_one_arm=bool(data.get("require_one_arm", False)),
+    )
 
 
 def _parse_source(entry: Mapping[str, Any], index: int, path: Path) -> Source:
@@ -171,6 +203,7 @@ def typestore(store: Stores, tmap: TopicMap) -> Any:
 
 
 __all__ = [
+    "ROBOTS",
     "STREAMS",
     "TOPIC_MAP_DIR",
     "BagError",

@@ -84,7 +84,8 @@ def min_jerk(tau: F64) -> F64:
 
 
 def _rotations(rotvecs: F64) -> F64:
-    return Rotation.from_rotvec(rotvecs).as_matrix().reshape(-1, 3, 3)
+    out: F64 = Rotation.from_rotvec(rotvecs).as_matrix().reshape(-1, 3, 3)
+    return out
 
 
 def _line(T_a: F64, T_b: F64) -> Callable[[F64], F64]:
@@ -213,15 +214,18 @@ class _Stitch:
 
     @property
     def x(self) -> F64:
-        return rot_z(self.yaw)[:, 0]
+        axis: F64 = rot_z(self.yaw)[:, 0]
+        return axis
 
     @property
     def y(self) -> F64:
-        return rot_z(self.yaw)[:, 1]
+        axis: F64 = rot_z(self.yaw)[:, 1]
+        return axis
 
     @property
     def centre(self) -> F64:
-        return self.origin + np.array([0.0, 0.0, self.radius * np.cos(self.bite / 2)])
+        c: F64 = self.origin + np.array([0.0, 0.0, self.radius * np.cos(self.bite / 2)])
+        return c
 
     @property
     def psi_entry(self) -> float:
@@ -233,7 +237,8 @@ class _Stitch:
 
     def needle_pose(self, phi: float) -> F64:
         R_0 = np.stack([self.y, np.array([0.0, 0.0, 1.0]), self.x], axis=1)
-        return pose(R_0 @ rot_z(phi), self.centre)
+        T: F64 = pose(R_0 @ rot_z(phi), self.centre)
+        return T
 
 
 def _translated(T: F64, d: ArrayLike) -> F64:
@@ -340,7 +345,8 @@ def _start_joints(layout: SceneLayout, index: int, hover: F64, rng: np.random.Ge
             rng.uniform(-0.3, 0.3),
         ]
     )
-    return np.clip(q, PSM_JOINT_LIMITS[:, 0], PSM_JOINT_LIMITS[:, 1])
+    clipped: F64 = np.clip(q, PSM_JOINT_LIMITS[:, 0], PSM_JOINT_LIMITS[:, 1])
+    return clipped
 
 
 @dataclass
@@ -871,7 +877,8 @@ def _realise(episode: _Episode, times: F64, seed: int, layout: SceneLayout) -> R
             failures += 1
             log.warning("IK: %s at t=%.3f s misses by %.3g mm", arm, times[i], res.pos_err_mm)
         prev[arm] = q[arm][i] = res.q
-        return base[arm] @ psm_tip_pose(res.q)
+        tip: F64 = base[arm] @ psm_tip_pose(res.q)
+        return tip
 
     for i in range(len(times)):
         active = [h for h in (holding[arm][i] for arm in ARMS) if h is not None]

@@ -8,6 +8,7 @@ theirs; bopsurg also varies the lighting, which the original's released code doe
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,7 +75,7 @@ class ReplayDraw:
     diffuse: float
     specular: float
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         """JSON-ready form."""
         return asdict(self)
 

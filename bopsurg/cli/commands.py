@@ -95,10 +95,16 @@ PLUGIN_HELP: dict[str, str] = {
     "record": "synthesise a suturing episode (two dVRK PSMs and a needle) into a rosbag",
     "generate": "replay bags from randomised endoscope viewpoints and lighting into a BOP dataset",
     "train": "train the built-in detector or pose head on a BOP dataset (CPU or GPU)",
+    "inspect": "show a bag's topics, the streams generate finds in it, and the kinematics check",
 }
 
 #: The extra that brings each built-in plugin command's dependencies, and their modules.
-PLUGIN_EXTRA: dict[str, str] = {"record": "sim", "generate": "sim", "train": "torch"}
+PLUGIN_EXTRA: dict[str, str] = {
+    "record": "sim",
+    "generate": "sim",
+    "inspect": "sim",
+    "train": "torch",
+}
 EXTRA_MODULES: dict[str, tuple[str, ...]] = {"sim": ("pybullet", "rosbags"), "torch": ("torch",)}
 
 

@@ -84,6 +84,8 @@ class FakeRecording:
     start: float = 0.0
     end: float = 4.0
     meta: dict = field(default_factory=dict)  # a Recording's facts (none: bopsurg's needle)
+    layout: None = None  # the default layout
+    robot: str = "simulator"
 
     def state_at(self, t: float) -> SceneState:
         x = -0.04 + 0.08 * (t - self.start) / (self.end - self.start)
