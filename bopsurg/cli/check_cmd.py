@@ -35,6 +35,14 @@ def register(sub: Subparsers) -> None:
     p.add_argument("dataset", help="dataset root folder (holds models/ and the split folders)")
     p.add_argument("--split", default="test", help="split folder name (default: test)")
     p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr for train_pbr")
+    p.add_argument(
+        "--dataset",
+        dest="dataset_name",
+        metavar="NAME",
+        default=None,
+        help="a standard BOP dataset's defaults (lmo, tless, ycbv, itodd, hot3d ...; 'none': "
+        "no defaults); default: the one the folder's name matches (docs/datasets.md)",
+    )
     p.add_argument("--no-images", action="store_true", help="skip reading images and masks")
     p.add_argument(
         "--max-problems", type=int, default=None, metavar="N", help="stop after N problems"
@@ -53,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
         check_images=not args.no_images,
         max_problems=args.max_problems,
         progress=True,
+        dataset=args.dataset_name,
     )
     for problem in problems:
         print(problem)
