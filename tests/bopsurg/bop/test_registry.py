@@ -35,7 +35,7 @@ from bopsurg.bop.registry import (
     dataset_spec,
     recognise,
 )
-from bopsurg.bop.results import save_results
+from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.cli.main import main
 from bopsurg.errors import DatasetError
 from bopsurg.evaluation import bop19
@@ -200,3 +200,64 @@ def test_the_dataset_flag_names_a_dataset_in_any_folder(tmp_path, capsys):
     assert check_dataset(lmo, dataset="none") == []
     assert main(["check", str(lmo), "--dataset", "nope"]) == 1
     assert "unknown BOP dataset 'nope'" in capsys.readouterr().out
+
+
+def test_eval_takes_vsd_delta_and_the_dataset_flag_from_the_registry(tmp_path, monkeypatch):
+    import bopsurg.evaluation.runner as runner
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def evaluate(dataset, est, **options):
+        seen.update(options, spec=dataset.spec.name)
+        raise Stop
+
+    monkeypatch.setattr(runner, "evaluate", evaluate)
+    root = build(tmp_path, "itodd").rename(tmp_path / "scan")
+    csv = tmp_path / "res.csv"
+    save_results(csv, estimates_from_gt(BopDataset(root, name="itodd")))
+    args = ["eval", str(root), str(csv), "--out", str(tmp_path / "ev"), "--dataset", "itodd"]
+    with pytest.raises(Stop):
+        main(args)
+    assert (seen["spec"], seen["vsd_delta"]) == ("itodd", 5.0)
+    with pytest.raises(Stop):
+        main([*args, "--vsd-delta", "7.5"])
+    assert seen["vsd_delta"] == 7.5
+
+
+def test_no_vsd_where_the_reference_has_none(tmp_path, caplog):
+    from bopsurg.cli.eval_cmd import _renderer
+
+    root = build(tmp_path, "ipd")
+    (root / "test" / "000001" / "depth").mkdir()
+    with caplog.at_level("INFO"):
+        assert _renderer("auto", BopDataset(root)) is None
+    assert "AR_VSD skipped: not evaluated on ipd" in caplog.text
+
+
+@pytest.mark.parametrize(("name", "kept"), [("xyzibd", True), ("lmo", False)])
+def test_bop24_keeps_200_estimates_per_image_on_xyzibd(tmp_path, name, kept):
+    """149 far-off estimates outscore the GT pose in each image: XYZ-IBD's cap of 200 keeps
+    it (AP 1/150 > 0), the usual 100 drops it (AP 0)."""
+    root = build(tmp_path, name)
+    gt = estimates_from_gt(BopDataset(root))
+    n, wrong = len(gt), 149
+    est = PoseEstimates.from_arrays(
+        scene_id=np.repeat(gt.scene_id, wrong + 1),
+        im_id=np.repeat(gt.im_id, wrong + 1),
+        obj_id=np.repeat(gt.obj_id, wrong + 1),
+        score=np.tile(np.r_[np.full(wrong, 0.9), 0.1], n),
+        R=np.repeat(gt.R, wrong + 1, axis=0),
+        t=np.repeat(gt.t, wrong + 1, axis=0)
+        + np.tile(np.r_[np.full(wrong, 500.0), 0.0], n)[:, None],
+        time=np.full(n * (wrong + 1), 0.1),
+    )
+    csv = tmp_path / "res.csv"
+    save_results(csv, est)
+    out = tmp_path / "ev"
+    assert main(["eval", str(root), str(csv), "--out", str(out), "--bootstrap", "0"]) == 0
+    mAP = json.loads((out / "scores.json").read_text())["bop24_mAP_mssd"]
+    assert (mAP > 0) is kept
+    assert mAP < 0.05
