@@ -177,14 +177,24 @@ def nearest_rotation(m: F64) -> F64:
     return np.asarray(U @ Vh)
 
 
-def _read_meta(path: Path) -> dict[str, Any]:
+#: The newest metadata format this runner reads (:data:`.export.META_FORMAT`).
+META_FORMAT = 1
+
+
+def _read_meta(path: Path) -> dict[str, Any] | None:
+    """An export's metadata, or None for a JSON file that is not one (no ``onnx`` key)."""
     try:
         meta = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise BopsurgError(f"{path}: not a readable JSON file ({err})") from err
-    if not isinstance(meta, dict) or "kind" not in meta or "onnx" not in meta:
-        raise BopsurgError(f"{path}: expected an export's metadata with 'kind' and 'onnx'")
-    return meta
+    if not isinstance(meta, dict) or "onnx" not in meta:
+        return None
+    if not isinstance(meta.get("format"), int) or meta["format"] > META_FORMAT:
+        raise BopsurgError(
+            f"{path}: format: expected an export of format <= {META_FORMAT}, got "
+            f"{meta.get('format')!r} (a newer bopsurg wrote it)"
+        )
+    return meta | {"_dir": path.parent}
 
 
 class OnnxPipeline:
@@ -215,8 +225,8 @@ class OnnxPipeline:
                 "gdrnet-onnx needs onnxruntime: pip install 'bopsurg[onnx]'"
             ) from err
         folder = Path(folder)
-        metas = [_read_meta(p) | {"_dir": p.parent} for p in sorted(folder.glob("*.json"))]
-        found = {m["kind"] for m in metas}
+        metas = [m for p in sorted(folder.glob("*.json")) if (m := _read_meta(p)) is not None]
+        found = {m.get("kind") for m in metas}
         if "detector" not in found or "pose" not in found:
             raise BopsurgError(f"{folder}: no exported detector and pose head (run bopsurg export)")
 
@@ -225,7 +235,10 @@ class OnnxPipeline:
 
         self.det_meta = next(m for m in metas if m["kind"] == "detector")
         self.detector = session(self.det_meta)
-        self.heads = {int(m["obj_id"]): (m, session(m)) for m in metas if m["kind"] == "pose"}
+        heads = [m for m in metas if m.get("kind") == "pose"]
+        self.heads = {int(m["obj_id"]): (m, session(m)) for m in heads}
+        if len(self.heads) < len(heads):
+            raise BopsurgError(f"{folder}: two exported pose heads are for the same obj_id")
         self.obj_ids = tuple(sorted(self.heads))
         self.conf = float(self.det_meta["detect"]["conf"] if conf is None else conf)
         self.max_per_object = max_per_object

@@ -20,6 +20,11 @@ scene_gt and scene_gt_info (schemas, image ids agreeing across files, known obj_
 orthonormal, K and depth_scale sane), that rgb/depth/mask files exist with the right size,
 that mask_visib pixel counts and boxes agree with scene_gt_info, and test_targets_bop19.json.
 
+A standard BOP dataset (lmo, tless, ycbv, itodd, hb, icbin, tudl, hope, hot3d, handal, ipd,
+xyzibd ...), recognised by the folder's name or --dataset NAME, is checked with its
+registered defaults: split type (tless test -> test_primesense), camera file, image size,
+the per-stream files of multi-stream layouts (scene_gt_{stream}.json); see docs/datasets.md.
+
 Exit code: 0 when the dataset is valid, 1 when problems were found, 2 on a usage error.
 """
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import shutil
 import subprocess
 import sys
 
@@ -181,6 +182,17 @@ def test_bad_inputs_are_one_line_errors(exported, tmp_path, capsys):
     (tmp_path / "pose.json").write_text("{not json")
     with pytest.raises(BopsurgError, match=r"pose\.json: not a readable JSON"):
         OnnxPipeline(tmp_path)
+    (tmp_path / "pose.json").write_text('{"format": 9, "kind": "pose", "onnx": "pose.onnx"}')
+    with pytest.raises(BopsurgError, match=r"pose\.json: format: expected an export of format"):
+        OnnxPipeline(tmp_path)
+    twice = tmp_path / "twice"
+    twice.mkdir()
+    for name in ("detector", "pose"):
+        (twice / f"{name}.onnx").symlink_to(exported / f"{name}.onnx")
+        shutil.copy(exported / f"{name}.json", twice)
+    shutil.copy(exported / "pose.json", twice / "pose_copy.json")
+    with pytest.raises(BopsurgError, match="two exported pose heads are for the same obj_id"):
+        OnnxPipeline(twice)
     with pytest.raises(BopsurgError, match="holds a 'detector' model, expected 'pose'"):
         export.load_pose_head(SHIPPED / "detector.pt")
     with pytest.raises(BopsurgError, match="exporter must be one of"):
