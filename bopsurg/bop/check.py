@@ -641,7 +641,7 @@ def _check_all(
         expected = None if camera_size is None else (camera_size, camera.name)
         if spec is not None:  # the reference's size of this split type and stream
             stream = None if scene.stream is None else scene.stream.name
-            expected = (spec.image_size(split_type, stream), f"the {spec.name} dataset")
+            expected = (spec.image_size(split_type, stream, split), f"the {spec.name} dataset")
         summaries[sid] = _check_scene(scene, known_obj, expected, check_images, rep)
     _check_targets(root, summaries, known_obj, rep)
     _check_image_targets(root, summaries, rep)

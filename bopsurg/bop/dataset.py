@@ -417,7 +417,7 @@ class BopDataset:
             if self.spec.streams and (scene_id is not None or self.scene_ids):
                 found = self.scene(self.scene_ids[0] if scene_id is None else scene_id).stream
                 stream = None if found is None else found.name
-            return self.spec.image_size(self.split_type, stream)
+            return self.spec.image_size(self.split_type, stream, self.split)
         cam = self.camera_json
         if cam is not None and "width" in cam and "height" in cam:
             try:

@@ -74,7 +74,8 @@ class DatasetSpec:
         name: The dataset's short name, as its folder is called (``lmo``, ``tless``).
         title: Its full name.
         size: Image size (width, height) px of its test images.
-        sizes: Sizes of other split types (``{"kinect": (1920, 1080)}``).
+        sizes: Sizes of other split types (``{"kinect": (1920, 1080)}``), or of one split's
+            type (``{"train_primesense": (400, 400)}``, which comes first).
         split_types: The split type used for a split named without one (``{"test":
             "primesense"}``), applied when that folder exists.
         camera_files: The dataset-level camera file per split type (``None``: the default).
@@ -112,13 +113,18 @@ class DatasetSpec:
             return default
         return None
 
-    def image_size(self, split_type: str | None = None, stream: str | None = None) -> Size:
-        """Image size (width, height) px of a split type and stream (default: test's)."""
+    def image_size(
+        self, split_type: str | None = None, stream: str | None = None, split: str = "test"
+    ) -> Size:
+        """Image size (width, height) px of a split, split type and stream (default: test's)."""
         for s in self.streams:
             if s.name == stream:
                 return s.size
-        if split_type is not None and split_type in self.sizes:
-            return self.sizes[split_type]
+        if split_type is None:
+            return self.size
+        for key in (f"{split}_{split_type}", split_type):
+            if key in self.sizes:
+                return self.sizes[key]
         return self.size
 
     def camera_file(self, split_type: str | None = None) -> str:
@@ -149,7 +155,9 @@ _DATASETS = (
     DatasetSpec(
         "tless", "T-LESS", (720, 540),
         sizes={"primesense": (720, 540), "kinect": (720, 540), "canon": (2560, 1920),
-               "pbr": (720, 540), "render_reconst": (1280, 1024)},
+               "pbr": (720, 540), "train_render_reconst": (1280, 1024),
+               "train_primesense": (400, 400), "train_kinect": (400, 400),
+               "train_canon": (1900, 1900), "train_synthetless": (400, 400)},
         split_types={"test": "primesense", "train": "primesense"},
         camera_files={None: "camera_primesense.json", "primesense": "camera_primesense.json",
                       "kinect": "camera_kinect.json", "canon": "camera_canon.json"},

@@ -112,6 +112,8 @@ def test_the_reference_parameters():
     assert list(VSD_TAUS) == np.arange(0.05, 0.51, 0.05).tolist() == list(bop19.VSD_TAUS)
     assert dataset_spec("tless").image_size() == (720, 540)
     assert dataset_spec("tless").image_size("canon") == (2560, 1920)
+    assert dataset_spec("tless").image_size("primesense", split="train") == (400, 400)
+    assert dataset_spec("tless").image_size("pbr", split="train") == (720, 540)
     assert dataset_spec("hb").image_size("kinect") == (1920, 1080)
     assert dataset_spec("itodd").image_size() == (1280, 960)
     assert dataset_spec("hot3d").image_size(None, "rgb") == (1408, 1408)
