@@ -263,3 +263,15 @@ def test_bop24_keeps_200_estimates_per_image_on_xyzibd(tmp_path, name, kept):
     mAP = json.loads((out / "scores.json").read_text())["bop24_mAP_mssd"]
     assert (mAP > 0) is kept
     assert mAP < 0.05
+
+
+@pytest.mark.slow  # worker processes
+def test_eval_workers_read_the_dataset_as_the_caller_does(tmp_path):
+    """Worker processes open the dataset again: a renamed HOT3D folder needs the name."""
+    root = build(tmp_path, "hot3d").rename(tmp_path / "scan")
+    csv = tmp_path / "res.csv"
+    save_results(csv, estimates_from_gt(BopDataset(root, name="hot3d")))
+    out = tmp_path / "ev"
+    args = ["eval", str(root), str(csv), "--out", str(out), "--dataset", "hot3d"]
+    assert main([*args, "--workers", "2", "--bootstrap", "0", "--no-progress"]) == 0
+    assert json.loads((out / "scores.json").read_text())["bop19_average_recall_mssd"] == 1.0
