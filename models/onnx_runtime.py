@@ -207,6 +207,7 @@ class OnnxPipeline:
         zoom: Crop sides as multiples of the 1.5 x box crop whose poses are averaged
             (default: the estimator's, recorded at export; ``(1.0,)`` is one crop).
         providers: onnxruntime execution providers.
+        threads: onnxruntime's intra-op threads (default: its own choice).
     """
 
     def __init__(
@@ -217,6 +218,7 @@ class OnnxPipeline:
         max_per_object: int = 1,
         zoom: Sequence[float] | None = None,
         providers: Sequence[str] = ("CPUExecutionProvider",),
+        threads: int | None = None,
     ) -> None:
         try:
             import onnxruntime as ort
@@ -230,8 +232,13 @@ class OnnxPipeline:
         if "detector" not in found or "pose" not in found:
             raise BopsurgError(f"{folder}: no exported detector and pose head (run bopsurg export)")
 
+        options = ort.SessionOptions()
+        if threads is not None:
+            options.intra_op_num_threads = threads
+
         def session(m: dict[str, Any]) -> Any:
-            return ort.InferenceSession(str(m["_dir"] / m["onnx"]), providers=list(providers))
+            path = str(m["_dir"] / m["onnx"])
+            return ort.InferenceSession(path, options, providers=list(providers))
 
         self.det_meta = next(m for m in metas if m["kind"] == "detector")
         self.detector = session(self.det_meta)
