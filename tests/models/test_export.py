@@ -197,6 +197,9 @@ def test_bad_inputs_are_one_line_errors(exported, tmp_path, capsys):
         export.load_pose_head(SHIPPED / "detector.pt")
     with pytest.raises(BopsurgError, match="exporter must be one of"):
         export.onnx_bytes(export.load_segmenter(SHIPPED / "needle_seg.pt"), exporter="jit")
+    if importlib.util.find_spec("onnxscript") is None:
+        with pytest.raises(BopsurgError, match="exporter=dynamo needs onnxscript"):
+            export.onnx_bytes(export.load_segmenter(SHIPPED / "needle_seg.pt"), exporter="dynamo")
     out = tmp_path / "none"
     assert main(["export", "--out", str(out), "--detector", "none", "--pose", "none",
                  "--segmenter", "none"]) != 0  # fmt: skip
