@@ -21,10 +21,11 @@ from tqdm import tqdm
 
 from bopsurg.bop._validate import Issues, get_dict, get_float, get_int
 from bopsurg.bop.coco import SCENE_GT_COCO, parse_scene_gt_coco
-from bopsurg.bop.dataset import BopScene, list_scene_ids, model_path
+from bopsurg.bop.dataset import BopScene, list_scene_ids, model_path, scene_stream
 from bopsurg.bop.images import image_size, load_mask
 from bopsurg.bop.jsonio import load_json
 from bopsurg.bop.meshes import load_ply, parse_models_info
+from bopsurg.bop.registry import recognise
 from bopsurg.bop.scene import (
     EMPTY_BBOX,
     CameraInfo,
@@ -36,7 +37,7 @@ from bopsurg.bop.scene import (
     parse_scene_gt_info,
 )
 from bopsurg.bop.targets import TARGETS_BOP24_FILENAME, parse_image_targets, parse_targets
-from bopsurg.errors import InputError
+from bopsurg.errors import DatasetError, InputError
 from bopsurg.geometry import ROTATION_ATOL, is_rotation
 
 T = TypeVar("T")
@@ -184,9 +185,8 @@ def _read_or_report(path: Path, missing: str, read: Callable[[Path], T], rep: _R
         return None
 
 
-def _check_camera_json(root: Path, rep: _Report) -> tuple[int, int] | None:
-    """Check root/camera.json if present; returns its (width, height) if valid."""
-    path = root / "camera.json"
+def _check_camera_json(path: Path, rep: _Report) -> tuple[int, int] | None:
+    """Check the dataset's camera file if present; returns its (width, height) if valid."""
     content = _load(path, rep, missing=None)
     if content is None:
         return None
@@ -371,22 +371,25 @@ def _check_images(
     im_ids: list[int],
     gts: dict[int, list[GtPose | None]] | None,
     infos: dict[int, list[GtInfo | None]] | None,
-    expected: tuple[int, int] | None,
+    expected: tuple[tuple[int, int], str] | None,
     rep: _Report,
 ) -> None:
     d = scene.scene_dir
-    has_rgb = (d / "rgb").is_dir() or (d / "gray").is_dir()
-    has_depth = (d / "depth").is_dir()
-    folders = ((d / "mask").is_dir(), (d / "mask_visib").is_dir())
+    has_rgb = any((d / f).is_dir() for f in scene.image_dirs)
+    has_depth = scene.depth_dir is not None and (d / scene.depth_dir).is_dir()
+    folders = (scene.mask_path(0, 0).parent.is_dir(), scene.mask_visib_path(0, 0).parent.is_dir())
     if not has_rgb:
-        rep.add(d / "rgb", None, "image folder not found (neither rgb/ nor gray/)")
+        names = " nor ".join(f"{f}/" for f in scene.image_dirs)
+        rep.add(d / scene.image_dirs[0], None, f"image folder not found (neither {names})")
+    size_of: tuple[int, int] | None = None if expected is None else expected[0]
+    source = "" if expected is None else expected[1]
     for im_id in im_ids:
-        size = expected
+        size = size_of
         if has_rgb:
             path = scene.rgb_path(im_id)
             got = _read_or_report(path, f"image {im_id} not found", image_size, rep)
-            if got is not None and expected is not None and got != expected:
-                msg = f"size {got[0]}x{got[1]} != {expected[0]}x{expected[1]} of camera.json"
+            if got is not None and size_of is not None and got != size_of:
+                msg = f"size {got[0]}x{got[1]} != {size_of[0]}x{size_of[1]} of {source}"
                 rep.add(path, None, msg)
             size = size or got
         if has_depth:
@@ -403,21 +406,17 @@ def _check_images(
 def _check_scene(
     scene: BopScene,
     known_obj: set[int] | None,
-    expected_size: tuple[int, int] | None,
+    expected_size: tuple[tuple[int, int], str] | None,
     check_images: bool,
     rep: _Report,
 ) -> _SceneSummary:
     d = scene.scene_dir
-    cam_path, gt_path, info_path = (
-        d / "scene_camera.json",
-        d / "scene_gt.json",
-        d / "scene_gt_info.json",
-    )
+    cam_path, gt_path, info_path = scene.camera_path, scene.gt_path, scene.gt_info_path
     cams = gts = infos = None
     content = _load(cam_path, rep)
     if content is not None:
         cams = _parse(cam_path, content, parse_scene_camera, rep)
-        _check_cameras(cam_path, cams, (d / "depth").is_dir(), rep)
+        _check_cameras(cam_path, cams, (d / (scene.depth_dir or "depth")).is_dir(), rep)
     content = _load(gt_path, rep, missing="file not found (needed for evaluation)")
     if content is not None:
         gts = _parse(gt_path, content, parse_scene_gt, rep)
@@ -428,20 +427,20 @@ def _check_scene(
 
     if cams is not None and gts is not None:
         if extra := set(gts) - set(cams):
-            rep.add(gt_path, None, f"images not in scene_camera.json: {_ids_text(extra)}")
+            rep.add(gt_path, None, f"images not in {cam_path.name}: {_ids_text(extra)}")
         if extra := set(cams) - set(gts):
-            rep.add(cam_path, None, f"images not in scene_gt.json: {_ids_text(extra)}")
+            rep.add(cam_path, None, f"images not in {gt_path.name}: {_ids_text(extra)}")
     if gts is not None and infos is not None:
         if extra := set(infos) - set(gts):
-            rep.add(info_path, None, f"images not in scene_gt.json: {_ids_text(extra)}")
+            rep.add(info_path, None, f"images not in {gt_path.name}: {_ids_text(extra)}")
         if extra := set(gts) - set(infos):
-            rep.add(info_path, None, f"images of scene_gt.json missing here: {_ids_text(extra)}")
+            rep.add(info_path, None, f"images of {gt_path.name} missing here: {_ids_text(extra)}")
         for im_id in sorted(set(gts) & set(infos)):
             if len(infos[im_id]) != len(gts[im_id]):
                 rep.add(
                     info_path,
                     str(im_id),
-                    f"{len(infos[im_id])} entries, but scene_gt.json has "
+                    f"{len(infos[im_id])} entries, but {gt_path.name} has "
                     f"{len(gts[im_id])} GT instances",
                 )
     if infos is not None:
@@ -539,6 +538,7 @@ def check_dataset(
     check_images: bool = True,
     max_problems: int | None = None,
     progress: bool = False,
+    dataset: str | None = None,
 ) -> list[Problem]:
     """Check a BOP dataset and return all problems found (empty list: all fine).
 
@@ -566,13 +566,16 @@ def check_dataset(
         check_images: Also check image and mask files (slower: masks are read).
         max_problems: Stop after this many problems.
         progress: Show a progress bar over the scenes.
+        dataset: A standard BOP dataset's name whose defaults apply (split type, camera
+            file, image size, streams; :mod:`bopsurg.bop.registry`); None: the one the
+            folder's name matches, if any; ``"none"``: no defaults.
 
     Returns:
         The problems, in the order found.
     """
     rep = _Report(max_problems)
     try:
-        _check_all(Path(root), split, split_type, check_images, progress, rep)
+        _check_all(Path(root), split, split_type, check_images, progress, rep, dataset)
     except _EnoughProblemsError:
         logger.info("stopped after %d problems", len(rep.items))
     if rep.zero_ids:
@@ -605,12 +608,21 @@ def _check_all(
     check_images: bool,
     progress: bool,
     rep: _Report,
+    dataset: str | None = None,
 ) -> None:
     if not root.is_dir():
         rep.add(root, None, "dataset folder not found")
         return
+    try:
+        spec = recognise(root, dataset)
+    except KeyError as err:
+        rep.add(root, None, str(err.args[0]))
+        return
+    if spec is not None:
+        split_type = spec.split_type(split, split_type, root)
     known_obj = _check_models(root, rep)
-    expected_size = _check_camera_json(root, rep)
+    camera = root / ("camera.json" if spec is None else spec.camera_file(split_type))
+    camera_size = _check_camera_json(camera, rep)
     split_dir = root / (split if split_type is None else f"{split}_{split_type}")
     if not split_dir.is_dir():
         rep.add(split_dir, None, "split folder not found")
@@ -620,8 +632,17 @@ def _check_all(
         rep.add(split_dir, None, "no scene folders (expected 6-digit names such as 000001)")
     summaries: dict[int, _SceneSummary] = {}
     for sid in tqdm(scene_ids, desc="checking scenes", unit="scene", disable=not progress):
-        scene = BopScene(sid, split_dir / f"{sid:06d}")
-        summaries[sid] = _check_scene(scene, known_obj, expected_size, check_images, rep)
+        d = split_dir / f"{sid:06d}"
+        try:
+            scene = BopScene(sid, d, scene_stream(d, spec, None))
+        except DatasetError as err:
+            rep.error(err)
+            continue
+        expected = None if camera_size is None else (camera_size, camera.name)
+        if spec is not None:  # the reference's size of this split type and stream
+            stream = None if scene.stream is None else scene.stream.name
+            expected = (spec.image_size(split_type, stream, split), f"the {spec.name} dataset")
+        summaries[sid] = _check_scene(scene, known_obj, expected, check_images, rep)
     _check_targets(root, summaries, known_obj, rep)
     _check_image_targets(root, summaries, rep)
     for sid in scene_ids:  # 2D annotations of the COCO tasks, where present

@@ -20,6 +20,11 @@ scene_gt and scene_gt_info (schemas, image ids agreeing across files, known obj_
 orthonormal, K and depth_scale sane), that rgb/depth/mask files exist with the right size,
 that mask_visib pixel counts and boxes agree with scene_gt_info, and test_targets_bop19.json.
 
+A standard BOP dataset (lmo, tless, ycbv, itodd, hb, icbin, tudl, hope, hot3d, handal, ipd,
+xyzibd ...), recognised by the folder's name or --dataset NAME, is checked with its
+registered defaults: split type (tless test -> test_primesense), camera file, image size,
+the per-stream files of multi-stream layouts (scene_gt_{stream}.json); see docs/datasets.md.
+
 Exit code: 0 when the dataset is valid, 1 when problems were found, 2 on a usage error.
 """
 
@@ -35,6 +40,14 @@ def register(sub: Subparsers) -> None:
     p.add_argument("dataset", help="dataset root folder (holds models/ and the split folders)")
     p.add_argument("--split", default="test", help="split folder name (default: test)")
     p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr for train_pbr")
+    p.add_argument(
+        "--dataset",
+        dest="dataset_name",
+        metavar="NAME",
+        default=None,
+        help="a standard BOP dataset's defaults (lmo, tless, ycbv, itodd, hot3d ...; 'none': "
+        "no defaults); default: the one the folder's name matches (docs/datasets.md)",
+    )
     p.add_argument("--no-images", action="store_true", help="skip reading images and masks")
     p.add_argument(
         "--max-problems", type=int, default=None, metavar="N", help="stop after N problems"
@@ -53,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
         check_images=not args.no_images,
         max_problems=args.max_problems,
         progress=True,
+        dataset=args.dataset_name,
     )
     for problem in problems:
         print(problem)

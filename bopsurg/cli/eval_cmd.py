@@ -113,7 +113,12 @@ def register(sub: Subparsers) -> None:
         help="comma-separated metrics of errors.csv, listed above (default: all; mssd is "
         "always computed: it decides the matching)",
     )
-    p.add_argument("--vsd-delta", type=float, default=15.0, help="VSD tolerance delta, mm")
+    p.add_argument(
+        "--vsd-delta",
+        type=float,
+        default=None,
+        help="VSD tolerance delta, mm (default: the dataset's, 5 for itodd, else 15)",
+    )
     p.add_argument(
         "--rerun",
         metavar="FILE.rrd",
@@ -138,6 +143,9 @@ def _renderer(choice: str, dataset: BopDataset) -> DepthRenderer | None:
         return None
     has_depth = any((dataset.split_dir / f"{s:06d}" / "depth").is_dir() for s in dataset.scene_ids)
     if choice == "auto":
+        if not dataset.evaluates_vsd:  # the reference has no VSD for HOT3D, IPD, XYZ-IBD ...
+            log.info("AR_VSD skipped: not evaluated on %s", dataset.spec and dataset.spec.name)
+            return None
         if not available_plugins("renderer"):
             log.info("AR_VSD skipped: no depth renderer plugin installed (bopsurg[sim] has one)")
             return None
@@ -191,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     renderer = _renderer(args.renderer, dataset)
     options = {
         "min_visib": args.min_visib,
-        "vsd_delta": args.vsd_delta,
+        "vsd_delta": dataset.vsd_delta_mm if args.vsd_delta is None else args.vsd_delta,
         "instance_metrics": [m.strip() for m in args.metrics.split(",") if m.strip()],
     }
     if executor is None:

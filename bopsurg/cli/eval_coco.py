@@ -23,7 +23,9 @@ def run_coco(args: argparse.Namespace) -> int:
     intervals under ``ci95`` when ``args.bootstrap`` > 0) and the bootstrap samples
     (``bootstrap_coco.npz``, for ``bopsurg compare``) into ``args.out``."""
     t0 = time.perf_counter()
-    dataset = BopDataset(args.dataset, args.split, split_type=args.split_type)
+    dataset = BopDataset(
+        args.dataset, args.split, split_type=args.split_type, name=args.dataset_name
+    )
     results = load_coco_results(args.results)
     present = []
     if any(r.get("bbox") for r in results):

@@ -20,6 +20,14 @@ def add_dataset_and_results(p: argparse.ArgumentParser) -> None:
     p.add_argument("results", help="BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time")
     p.add_argument("--split", default="test", help="split folder name (default: test)")
     p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr")
+    p.add_argument(
+        "--dataset",
+        dest="dataset_name",
+        metavar="NAME",
+        default=None,
+        help="a standard BOP dataset's defaults (lmo, tless, ycbv, itodd, hot3d ...; 'none': "
+        "no defaults); default: the one the folder's name matches (docs/datasets.md)",
+    )
 
 
 def load_dataset_and_results(args: argparse.Namespace) -> tuple[BopDataset, PoseEstimates]:
@@ -27,7 +35,9 @@ def load_dataset_and_results(args: argparse.Namespace) -> tuple[BopDataset, Pose
     from bopsurg.bop.dataset import BopDataset
     from bopsurg.bop.results import check_results_against_dataset, load_results
 
-    dataset = BopDataset(args.dataset, args.split, split_type=args.split_type)
+    dataset = BopDataset(
+        args.dataset, args.split, split_type=args.split_type, name=args.dataset_name
+    )
     results_path = Path(args.results)
     est = load_results(results_path)
     images = {(s, i) for s in dataset.scene_ids for i in dataset.scene(s).camera}

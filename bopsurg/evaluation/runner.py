@@ -227,10 +227,12 @@ class EvalUnit:
     estimates: PoseEstimates
     targets: tuple[Target, ...] | None
     options: dict[str, Any]
+    #: The registered dataset the worker applies (``"none"``: none), as the caller's.
+    dataset_name: str = "none"
 
 
 def _eval_unit(unit: EvalUnit, report: Callable[[int], None]) -> Evaluation:
-    dataset = BopDataset(unit.root, unit.split, split_type=unit.split_type)
+    dataset = BopDataset(unit.root, unit.split, split_type=unit.split_type, name=unit.dataset_name)
     opts = dict(unit.options)
     renderer_name = opts.pop("renderer_name", None)
     renderer = load_plugin("renderer", renderer_name)() if renderer_name else None
@@ -280,6 +282,7 @@ def evaluate_distributed(
                 estimates=estimates.subset(keep),
                 targets=tuple(t for t in all_targets if t.scene_id in set(g)),
                 options={**options, "renderer_name": renderer_name},
+                dataset_name="none" if dataset.spec is None else dataset.spec.name,
             )
         )
     with tqdm(total=len(ids), unit="scene", desc="eval", disable=not progress) as bar:

@@ -66,6 +66,8 @@ def add_detection_scores(
         return None
     from bopsurg.evaluation.bop24 import evaluate_bop24
 
-    det = evaluate_bop24(dataset, estimates, image_targets)
+    det = evaluate_bop24(
+        dataset, estimates, image_targets, max_per_image=dataset.max_estimates_per_image
+    )
     scores.update(det.scores)
     return det
