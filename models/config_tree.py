@@ -14,7 +14,7 @@ import dataclasses
 import types
 import typing
 from collections.abc import Mapping
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import dacite
 import yaml
@@ -60,6 +60,21 @@ def _check_keys(cls: type[Any], data: Mapping[str, Any], where: str) -> None:
             raise BopsurgError(f"{path}: expected a number, got {str(value).lower()}")
 
 
+def _none_modes(cls: type[Any], data: Mapping[str, Any]) -> dict[str, Any]:
+    """``data`` with null read as the mode ``"none"`` where a field's modes (a ``Literal``)
+    have one: ``--option refine.depth.mode=none`` parses to null like ``ends.classifier=none``."""
+    hints = typing.get_type_hints(cls)
+    out = dict(data)
+    for key, value in data.items():
+        sub = _dataclass_of(hints[key])
+        if sub is not None and isinstance(value, Mapping):
+            out[key] = _none_modes(sub, value)
+        elif value is None and typing.get_origin(hints[key]) is Literal:
+            if "none" in typing.get_args(hints[key]):
+                out[key] = "none"
+    return out
+
+
 def _as_float(value: Any) -> Any:
     """ints are floats where a float is asked for (YAML reads ``1`` as an int); bools are not."""
     return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
@@ -78,7 +93,7 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], source: str = "config") 
         raise BopsurgError(f"{source}: {err}") from None
     config = dacite.Config(strict=True, cast=[tuple], type_hooks={float: _as_float})
     try:
-        return dacite.from_dict(cls, dict(data), config=config)
+        return dacite.from_dict(cls, _none_modes(cls, data), config=config)
     except dacite.DaciteFieldError as err:
         raise BopsurgError(f"{source}: {err.field_path}: {_reason(err)}") from err
     except (dacite.DaciteError, ValueError, TypeError) as err:

@@ -39,7 +39,9 @@ def test_dotted_options_reach_nested_settings_with_yaml_values():
         "detect.input_hw=[384, 512]",
         "refine.recrop.undo_unimproved=true",
         "refine.fit.prior_mm=[1, 2, 3]",
+        "refine.depth.mode=none",
     )
+    assert cfg.refine.depth.mode == "none"  # 'none' is null, and null the mode "none"
     assert cfg.refine.depth.weight == 8.0
     assert isinstance(cfg.refine.depth.weight, float)  # YAML's 8 is an int; a float is asked
     assert cfg.head.zoom == (1.0,)
