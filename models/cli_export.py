@@ -68,7 +68,8 @@ def _chosen(value: str | None, role: str) -> Path | None:
 
     if value is not None and value.lower() == "none":
         return None
-    return weight_file(role, "shipped" if value is None else value)
+    path: Path = weight_file(role, "shipped" if value is None else value)
+    return path
 
 
 def run(args: argparse.Namespace) -> int:
