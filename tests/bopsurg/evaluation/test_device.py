@@ -18,9 +18,9 @@ def test_unknown_device_is_refused() -> None:
 
 def test_cuda_without_a_gpu_is_one_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(device, "cuda_available", lambda: False)
-    with pytest.raises(BopsurgError, match="--device cuda: torch with a CUDA GPU"):
-        with device.metric_device("cuda"):
-            pass
+    error = pytest.raises(BopsurgError, match="--device cuda: torch with a CUDA GPU")
+    with error, device.metric_device("cuda"):
+        pass
 
 
 def test_auto_keeps_small_batches_on_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
