@@ -67,6 +67,16 @@ def _taus(taus: Sequence[float] | ArrayLike, cost: str) -> F64:
     return tau
 
 
+def _support_window(a: F64, b: F64) -> tuple[slice, slice] | None:
+    """Rows and columns of the bounding box of the pixels where ``a`` or ``b`` is > 0."""
+    rows = np.flatnonzero((a > 0).any(axis=1) | (b > 0).any(axis=1))
+    if rows.size == 0:
+        return None
+    r = slice(int(rows[0]), int(rows[-1]) + 1)
+    cols = np.flatnonzero((a[r] > 0).any(axis=0) | (b[r] > 0).any(axis=0))
+    return r, slice(int(cols[0]), int(cols[-1]) + 1)
+
+
 def vsd(
     depth_test: ArrayLike,
     depth_est: ArrayLike,
@@ -119,9 +129,17 @@ def vsd(
     tau = _taus(taus, cost)
     diam = None if diameter is None else _positive(diameter, "diameter")
 
-    dist_test = depth_to_distance(test, K_m)
-    dist_gt = depth_to_distance(gt, K_m)
-    dist_est = depth_to_distance(est, K_m)
+    # Only pixels where a rendering has depth can be visible (both masks need d_model > 0):
+    # the rest of the image adds nothing, so work on their bounding window (same values,
+    # depth_to_distance is bit-identical on windows).
+    window = _support_window(est, gt)
+    if window is None:
+        return np.ones(tau.size)
+    rows, cols = window
+    origin = (rows.start, cols.start)
+    dist_test = depth_to_distance(test[rows, cols], K_m, origin)
+    dist_gt = depth_to_distance(gt[rows, cols], K_m, origin)
+    dist_est = depth_to_distance(est[rows, cols], K_m, origin)
     visib_gt = estimate_visib_mask_gt(dist_test, dist_gt, delta, visib_mode)
     visib_est = estimate_visib_mask_est(dist_test, dist_est, visib_gt, delta, visib_mode)
     inter = np.logical_and(visib_gt, visib_est)
