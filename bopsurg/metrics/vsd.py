@@ -67,7 +67,7 @@ def _taus(taus: Sequence[float] | ArrayLike, cost: str) -> F64:
     return tau
 
 
-def _support_window(a: F64, b: F64) -> tuple[slice, slice] | None:
+def _support_window(a: NDArray[np.floating], b: NDArray[np.floating]) -> tuple[slice, slice] | None:
     """Rows and columns of the bounding box of the pixels where ``a`` or ``b`` is > 0."""
     rows = np.flatnonzero((a > 0).any(axis=1) | (b > 0).any(axis=1))
     if rows.size == 0:
