@@ -90,7 +90,8 @@ def main() -> None:
             ref = f"{c['reference_s']:.1f} s (eval_bop19_pose.py)" if "ratio" in c else ""
             ratio = f"{c['ratio']:.1f}x" if "ratio" in c else ""
             rows.append(
-                f"| `bopsurg eval` with VSD, {Path(args.data).name} | {c['bopsurg_s']:.2f} s | "
+                f"| `bopsurg eval` with VSD, {'/'.join(Path(args.data).parts[-2:])} | "
+                f"{c['bopsurg_s']:.2f} s | "
                 f"{ref} | {ratio} |"
             )
     print(f"Machine: {machine()}\n")
