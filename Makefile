@@ -42,9 +42,12 @@ test-after-ray: $(STAMP)
 		--out $$home/ev --no-progress --executor ray >/dev/null && \
 	HOME=$$home $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS)
 
+# The README's speed table as Markdown, measured in one run (bench/speed_table.py). Add e.g.
+# BENCH_ARGS="--device cuda" or "--data demo_out/data --results demo_out/results.csv
+# --toolkit ../bop_toolkit --toolkit-python ../bop-venv/bin/python" (ratio to the reference).
+BENCH_ARGS ?=
 bench: $(STAMP)
-	$(BIN)/python bench/bench_metrics.py
-	$(BIN)/python bench/bench_eval.py
+	$(BIN)/python bench/speed_table.py $(BENCH_ARGS)
 
 # The documentation site (docs/, mkdocs.yml) into site/; --strict fails on any warning
 # (a broken link, a missing page, a docstring the API reference cannot read).

@@ -1,9 +1,20 @@
-"""Bench: `bopsurg eval` on many estimates (default 100,000), end to end.
+"""Bench: `bopsurg eval` end to end, against the reference toolkit's scripts or at scale.
 
-Builds a scene-files-only BOP dataset (the needle model, N images with one GT each, spread
-over scenes of 1,000 images) and a results CSV with one estimate per image plus 5 %
-duplicates, then times each stage: loading the CSV, checking it against the dataset, the
-evaluation (both matchings, all metrics, BOP19 scores) and writing the outputs. Seeded.
+With ``--data DATASET --results CSV`` (e.g. the demo's ``demo_out/data`` and
+``demo_out/results.csv``): times the ``bopsurg eval`` command (a fresh process, imports
+included, default options: VSD with the installed renderer, BOP19 and BOP24, intervals) and,
+given ``--toolkit`` (a thodan/bop_toolkit checkout) and ``--toolkit-python`` (a Python that
+runs it: numpy < 2, scipy, pypng, imageio, vispy, PyOpenGL; headless Mesa EGL), the
+reference's ``scripts/eval_bop19_pose.py`` (VSD, MSSD, MSPD, one worker) on the same data laid
+out as its ``lm`` dataset. Prints both wall times, their ratio and both sets of ARs.
+
+    python bench/bench_eval.py --data demo_out/data --results demo_out/results.csv \
+        --toolkit ../bop_toolkit --toolkit-python ../bop-venv/bin/python
+
+Without ``--data``: builds a scene-files-only BOP dataset (the needle model, N images with one
+GT each, spread over scenes of 1,000 images) and a results CSV with one estimate per image
+plus 5 % duplicates, then times each stage: loading the CSV, checking it against the dataset,
+the evaluation (both matchings, all metrics, BOP19 scores) and writing the outputs. Seeded.
 
     python bench/bench_eval.py [--estimates 100000] [--out bench/out/eval]
 """
@@ -11,6 +22,11 @@ evaluation (both matchings, all metrics, BOP19 scores) and writing the outputs. 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -92,6 +108,97 @@ def build(root: Path, n: int, seed: int) -> Path:
     return results
 
 
+#: The toolkit's ``lm``: the only layout its scripts accept for a dataset of ours.
+LM_OBJECTS, LM_SCENES = range(1, 16), range(1, 16)
+AR_KEYS = ("bop19_average_recall_vsd", "bop19_average_recall_mssd", "bop19_average_recall_mspd")
+
+
+def as_lm(data: Path, bop_path: Path) -> None:
+    """Copy a 640x480 dataset with scene ids and object ids in 1..15 into ``bop_path/lm``."""
+    lm = bop_path / "lm"
+    shutil.rmtree(lm, ignore_errors=True)
+    (lm / "models_eval").mkdir(parents=True)
+    info = json.loads((data / "models" / "models_info.json").read_text())
+    first = min(int(k) for k in info)
+    for obj_id in LM_OBJECTS:
+        src = obj_id if str(obj_id) in info else first
+        ply = data / "models" / f"obj_{src:06d}.ply"
+        shutil.copy(ply, lm / "models_eval" / f"obj_{obj_id:06d}.ply")
+        info[str(obj_id)] = info[str(src)]
+    (lm / "models_eval" / "models_info.json").write_text(json.dumps(info))
+    shutil.copytree(data / "test", lm / "test")
+    for scene_id in LM_SCENES:  # the toolkit expects every lm scene; empty ones do
+        d = lm / "test" / f"{scene_id:06d}"
+        if not d.exists():
+            d.mkdir()
+            for name in ("scene_gt.json", "scene_camera.json", "scene_gt_info.json"):
+                (d / name).write_text("{}")
+    shutil.copy(data / "test_targets_bop19.json", lm / "test_targets_bop19.json")
+
+
+def run_toolkit(args: argparse.Namespace, work: Path) -> tuple[float, dict[str, float]]:
+    """The reference's eval_bop19_pose.py on the data laid out as lm: (wall s, scores)."""
+    bop, res, ev = work / "bop", work / "results", work / "eval"
+    as_lm(args.data, bop)
+    for d in (res, ev):
+        shutil.rmtree(d, ignore_errors=True)
+        d.mkdir(parents=True)
+    shutil.copy(args.results, res / "bench_lm-test.csv")
+    python = Path(args.toolkit_python).absolute()
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(Path(args.toolkit).resolve()),
+        "BOP_PATH": str(bop.resolve()),
+        "BOP_RESULTS_PATH": str(res.resolve()),
+        "BOP_EVAL_PATH": str(ev.resolve()),
+        "PATH": f"{python.parent}{os.pathsep}{os.environ['PATH']}",
+        "PYOPENGL_PLATFORM": "egl",
+        "EGL_PLATFORM": "surfaceless",
+    }
+    script = Path(args.toolkit) / "scripts" / "eval_bop19_pose.py"
+    cmd = [str(python), str(script), "--result_filenames=bench_lm-test.csv", "--num_workers=1"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    seconds = time.perf_counter() - t0
+    out = ev / "bench_lm-test" / "scores_bop19.json"
+    if proc.returncode != 0 or not out.exists():
+        sys.exit(f"the toolkit failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+    return seconds, json.loads(out.read_text())
+
+
+def run_bopsurg(args: argparse.Namespace, work: Path) -> tuple[float, dict[str, float]]:
+    """``bopsurg eval`` with its defaults in a fresh process: (wall s, scores)."""
+    out = work / "bopsurg_eval"
+    shutil.rmtree(out, ignore_errors=True)
+    bopsurg = Path(sys.executable).parent / "bopsurg"
+    cmd = [str(bopsurg), "eval", str(args.data), str(args.results), "--out", str(out)]
+    cmd += ["--no-progress", *args.eval_args]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, capture_output=True)
+    seconds = time.perf_counter() - t0
+    return seconds, json.loads((out / "scores.json").read_text())
+
+
+def compare_with_reference(args: argparse.Namespace) -> dict[str, object]:
+    """Time bopsurg eval (best of ``--repeats``) and the reference; print the comparison."""
+    work = Path(args.out)
+    runs = [run_bopsurg(args, work) for _ in range(args.repeats)]
+    t_ours, ours = min(runs, key=lambda r: r[0])
+    print(f"bopsurg eval: {t_ours:.2f} s (best of {args.repeats}; all: "
+          f"{', '.join(f'{r[0]:.2f}' for r in runs)})")  # fmt: skip
+    row: dict[str, object] = {"bopsurg_s": t_ours, "bopsurg": {k: ours.get(k) for k in AR_KEYS}}
+    if args.toolkit:
+        t_ref, ref = run_toolkit(args, work)
+        row |= {"reference_s": t_ref, "ratio": t_ref / t_ours}
+        row["reference"] = {k: ref.get(k) for k in AR_KEYS}
+        print(f"reference scripts (eval_bop19_pose.py, 1 worker): {t_ref:.2f} s")
+        print(f"ratio: bopsurg eval is {t_ref / t_ours:.1f}x the reference")
+    for k in AR_KEYS:
+        ref_v = row.get("reference", {}).get(k) if args.toolkit else None  # type: ignore[union-attr]
+        print(f"  {k:<28} bopsurg {ours.get(k)}   reference {ref_v}")
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -101,7 +208,23 @@ def main() -> None:
     )
     ap.add_argument("--out", default="bench/out/eval", help="working folder")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--data", type=Path, help="a BOP dataset: compare with the reference")
+    ap.add_argument("--results", type=Path, help="its results CSV (with --data)")
+    ap.add_argument("--toolkit", type=Path, help="thodan/bop_toolkit checkout (with --data)")
+    ap.add_argument("--toolkit-python", default="python", help="Python that runs the toolkit")
+    ap.add_argument("--repeats", type=int, default=3, help="bopsurg eval runs (the fastest counts)")
+    ap.add_argument(
+        "--eval-arg", dest="eval_args", action="append", default=[], help="extra eval argument"
+    )
+    ap.add_argument("--json", type=Path, help="also write the numbers as JSON here")
     args = ap.parse_args()
+    if args.data:
+        if not args.results:
+            ap.error("--data needs --results")
+        row = compare_with_reference(args)
+        if args.json:
+            args.json.write_text(json.dumps(row, indent=1))
+        return
     root = Path(args.out) / "dataset"
     t0 = time.perf_counter()
     results = build(root, args.estimates, args.seed)
@@ -137,6 +260,10 @@ def main() -> None:
         f"AR_MSSD {scores['bop19_average_recall_mssd']:.4f}  "
         f"AR_MSPD {scores['bop19_average_recall_mspd']:.4f}"
     )
+    if args.json:
+        numbers = {"estimates": len(est), "vertices": n_vertices, "stages_s": times}
+        numbers |= {"total_s": sum(times.values()), "evaluate_without_adi_s": t_fast}
+        args.json.write_text(json.dumps(numbers, indent=1))
 
 
 if __name__ == "__main__":

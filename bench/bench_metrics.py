@@ -10,15 +10,24 @@ on all poses and the reference per-pose loop (:mod:`bopsurg.metrics.reference`, 
 ``bop_toolkit_lib.pose_error``) on a subset of poses, whose per-pose time is extrapolated.
 It prints per-pose times, the speed-up, the largest absolute and relative deviation on the
 subset, and the peak memory of each batched call (tracemalloc, in a separate untimed run).
-The torch path (CPU here, or CUDA if present) is timed on a subset too.
+The torch path (``--device``: CUDA, or the CPU) is timed on all poses.
 
     python bench/bench_metrics.py [--poses 1000] [--vertices 5000] [--ref-poses 50] [--quick]
+
+GPU (torch backend against the numpy path, both on all poses, float64 and float32)::
+
+    python bench/bench_metrics.py --device cuda --poses 10000 --symmetries 315 --vertices 5000
+
+With ``--device`` the metrics default to MSSD, MSPD and ADD, and a summary prints numpy and
+torch ms/pose with their ratio per model and metric.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import platform
 import resource
 import time
@@ -36,6 +45,26 @@ from bopsurg.metrics import reference as ref
 K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
 CONT_Z = {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
 REF = ("mssd", "mspd", "add", "adi", "proj", "re", "te")
+TORCH = ("mssd", "mspd", "add")
+
+
+def machine() -> str:
+    """The machine in one line: platform, CPU model, cores."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{platform.platform()}, {cpu}, {os.cpu_count()} cores"
+
+
+def continuous_step(n_syms: int) -> float:
+    """``max_sym_disc_step`` that discretises one continuous symmetry into ``n_syms`` rotations
+    (``ceil(π / step)`` of them; 0.01 gives BOP's 315)."""
+    return 0.01 if n_syms == 315 else math.pi / (n_syms - 0.5)
 
 
 def box_model(rng: np.random.Generator, v: int) -> np.ndarray:
@@ -86,9 +115,8 @@ def deviation(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 def run_model(name: str, pts: np.ndarray, args: argparse.Namespace) -> list[dict[str, Any]]:
     rng = np.random.default_rng(args.seed + 1)
     R_est, t_est, R_gt, t_gt = pose_pairs(rng, args.poses)
-    syms = metrics.symmetry_transforms(CONT_Z, 0.01)
+    syms = metrics.symmetry_transforms(CONT_Z, continuous_step(args.symmetries))
     m = min(args.ref_poses, args.poses)
-    sub = (R_est[:m], t_est[:m], R_gt[:m], t_gt[:m])
     cases: list[tuple[str, str, Callable[[], Any], Callable[[int], float]]] = [
         ("mssd", "mm", lambda: metrics.mssd(R_est, t_est, R_gt, t_gt, pts, syms),
          lambda i: ref.mssd_ref(R_est[i], t_est[i], R_gt[i], t_gt[i], pts, syms)),
@@ -104,7 +132,7 @@ def run_model(name: str, pts: np.ndarray, args: argparse.Namespace) -> list[dict
         ("te", "mm", lambda: metrics.te(t_est, t_gt), lambda i: ref.te_ref(t_est[i], t_gt[i])),
     ]  # fmt: skip
     rows = []
-    for metric, unit, batched, one in cases:
+    for metric, unit, batched, one in [c for c in cases if c[0] in args.metrics]:
         t_fast, vals = best_of(args.repeats, batched)
         t_ref, ref_vals = best_of(1, lambda one=one: np.array([one(i) for i in range(m)]))
         fast_ms = 1e3 * t_fast / args.poses
@@ -114,94 +142,159 @@ def run_model(name: str, pts: np.ndarray, args: argparse.Namespace) -> list[dict
             "model": name, "metric": metric, "unit": unit, "poses": args.poses, "ref_poses": m,
             "bopsurg_ms_per_pose": fast_ms, "reference_ms_per_pose": ref_ms,
             "speedup": ref_ms / fast_ms, "max_abs_dev": dev_abs, "max_rel_dev": dev_rel,
-            "peak_mb": peak_mb(batched), "mean_value": float(np.mean(vals)),
+            "peak_mb": float("nan") if args.device else peak_mb(batched),
+            "mean_value": float(np.mean(vals)), "values": vals,
         })  # fmt: skip
-    if args.torch:
-        rows += run_torch(name, pts, syms, sub, args)
+    if args.device:
+        numpy_vals = {r["metric"]: r for r in rows}
+        rows += run_torch(name, pts, syms, (R_est, t_est, R_gt, t_gt), numpy_vals, args)
     return rows
 
 
 def run_torch(
-    name: str, pts: np.ndarray, syms: metrics.Symmetries, sub: tuple[np.ndarray, ...], args: Any
+    name: str,
+    pts: np.ndarray,
+    syms: metrics.Symmetries,
+    pairs: tuple[np.ndarray, ...],
+    numpy_rows: dict[str, dict[str, Any]],
+    args: Any,
 ) -> list[dict[str, Any]]:
-    try:
-        from bopsurg.metrics import torch_backend as tb
-    except ImportError:
-        return []
-    dev = tb.resolve_device("auto")
-    m = min(args.torch_poses, len(sub[0]))
-    pairs = tuple(a[:m] for a in sub)
+    """Torch rows (float64, then float32) of the metrics timed on numpy, on all poses."""
+    import torch
+
+    from bopsurg.metrics import torch_backend as tb
+
+    dev = tb.resolve_device(args.device)
     rows = []
-    for metric, fn, np_fn in [
-        ("mssd", lambda: tb.mssd_torch(*pairs, pts, syms, device=dev),
-         lambda: metrics.mssd(*pairs, pts, syms)),
-        ("mspd", lambda: tb.mspd_torch(*pairs, K, pts, syms, device=dev),
-         lambda: metrics.mspd(*pairs, K, pts, syms)),
-        ("add", lambda: tb.add_torch(*pairs, pts, device=dev), lambda: metrics.add(*pairs, pts)),
-    ]:  # fmt: skip
-        fn()  # warm-up (CUDA context, kernels)
-        t, out = best_of(args.repeats, lambda fn=fn: fn().cpu().numpy())
-        dev_abs, dev_rel = deviation(out, np_fn())
-        rows.append({
-            "model": name, "metric": f"{metric} (torch {dev.type})", "unit": "",
-            "poses": m, "ref_poses": m, "bopsurg_ms_per_pose": 1e3 * t / m,
-            "reference_ms_per_pose": float("nan"), "speedup": float("nan"),
-            "max_abs_dev": dev_abs, "max_rel_dev": dev_rel, "peak_mb": float("nan"),
-            "mean_value": float(np.mean(out)),
-        })  # fmt: skip
+    for dtype in (torch.float64, torch.float32):
+        for metric, fn in [
+            ("mssd", lambda dt=dtype: tb.mssd_torch(*pairs, pts, syms, device=dev, dtype=dt)),
+            ("mspd", lambda dt=dtype: tb.mspd_torch(*pairs, K, pts, syms, device=dev, dtype=dt)),
+            ("add", lambda dt=dtype: tb.add_torch(*pairs, pts, device=dev, dtype=dt)),
+        ]:  # fmt: skip
+            if metric not in numpy_rows:
+                continue
+            fn()  # warm-up: CUDA context, kernels, the model's hull (cached per model)
+            t, out = best_of(args.repeats, lambda fn=fn: fn().cpu().numpy())
+            np_row = numpy_rows[metric]
+            dev_abs, dev_rel = deviation(out, np_row["values"])
+            ms = 1e3 * t / args.poses
+            rows.append({
+                "model": name, "metric": f"{metric} ({dev.type} {str(dtype)[6:]})",
+                "unit": np_row["unit"], "poses": args.poses, "ref_poses": args.poses,
+                "bopsurg_ms_per_pose": ms, "reference_ms_per_pose": float("nan"),
+                "speedup": float("nan"), "max_abs_dev": dev_abs, "max_rel_dev": dev_rel,
+                "peak_mb": float("nan"), "mean_value": float(np.mean(out)),
+                "numpy_ms_per_pose": np_row["bopsurg_ms_per_pose"],
+                "torch_vs_numpy": np_row["bopsurg_ms_per_pose"] / ms,
+            })  # fmt: skip
     return rows
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--poses", type=int, default=1000, help="pose pairs for the batched metrics")
     p.add_argument("--vertices", type=int, default=5000, help="model vertices")
+    p.add_argument(
+        "--symmetries", type=int, default=315, help="samples of the continuous symmetry (315)"
+    )
     p.add_argument("--ref-poses", type=int, default=50, help="poses for the reference loop")
-    p.add_argument("--torch-poses", type=int, default=20, help="poses for the torch path")
+    p.add_argument(
+        "--device",
+        choices=("cpu", "cuda", "auto"),
+        help="also time the torch backend on this device (all poses; default: not timed)",
+    )
+    p.add_argument(
+        "--metrics",
+        help=f"comma-separated subset of {','.join(REF)} (default: all; with --device: "
+        f"{','.join(TORCH)})",
+    )
     p.add_argument("--repeats", type=int, default=3, help="batched runs; the fastest counts")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-torch", dest="torch", action="store_false", help="skip the torch path")
     p.add_argument("--quick", action="store_true", help="200 poses, 10 reference poses, 1 run")
     p.add_argument("--json", type=Path, help="also write the rows as JSON here")
     args = p.parse_args()
     if args.quick:
-        args.poses, args.ref_poses, args.torch_poses, args.repeats = 200, 10, 5, 1
+        args.poses, args.ref_poses, args.repeats = 200, 10, 1
+    chosen = args.metrics or ",".join(TORCH if args.device else REF)
+    args.metrics = [m.strip() for m in chosen.split(",") if m.strip()]
+    unknown = set(args.metrics) - set(REF)
+    if unknown:
+        p.error(f"unknown metrics {sorted(unknown)}")
+    return args
 
+
+def print_rows(rows: list[dict[str, Any]]) -> None:
+    print(
+        f"{'metric':<20}{'bopsurg ms/pose':>16}{'ref ms/pose':>13}{'speed-up':>10}"
+        f"{'max abs dev':>13}{'max rel dev':>13}{'peak MB':>9}"
+    )
+    for r in rows:
+        ref = r["metric"] in REF
+        ref_ms = f"{r['reference_ms_per_pose']:.4f}" if ref else "-"
+        speed = f"{r['speedup']:.1f}x" if ref else "-"
+        peak = f"{r['peak_mb']:.1f}" if ref and not math.isnan(r["peak_mb"]) else "-"
+        print(
+            f"{r['metric']:<20}{r['bopsurg_ms_per_pose']:>16.4f}{ref_ms:>13}{speed:>10}"
+            f"{r['max_abs_dev']:>13.2e}{r['max_rel_dev']:>13.2e}{peak:>9}"
+        )
+
+
+def print_torch_summary(rows: list[dict[str, Any]], n: int) -> None:
+    """numpy vs torch ms/pose and their ratio, per model and metric."""
+    tr = [r for r in rows if "torch_vs_numpy" in r]
+    if not tr:
+        return
+    print(f"\nnumpy path vs torch backend, {n} poses (ratio = numpy time / torch time):")
+    print(f"{'model':<8}{'metric':<22}{'numpy ms/pose':>15}{'torch ms/pose':>15}{'ratio':>9}")
+    for r in tr:
+        print(
+            f"{r['model']:<8}{r['metric']:<22}{r['numpy_ms_per_pose']:>15.5f}"
+            f"{r['bopsurg_ms_per_pose']:>15.5f}{r['torch_vs_numpy']:>8.1f}x"
+        )
+
+
+def main() -> None:
+    args = parse_args()
     rng = np.random.default_rng(args.seed)
     models = {"box": box_model(rng, args.vertices), "needle": needle_model(rng, args.vertices)}
+    n_syms = len(metrics.symmetry_transforms(CONT_Z, continuous_step(args.symmetries))[0])
     print(
         f"bopsurg metrics bench: {args.poses} pose pairs, {args.vertices} vertices, one "
-        f"continuous z symmetry (315 transforms), seed {args.seed}; reference loop timed on "
-        f"the first {min(args.ref_poses, args.poses)} poses and extrapolated per pose; "
+        f"continuous z symmetry ({n_syms} transforms), seed {args.seed}; reference loop timed "
+        f"on the first {min(args.ref_poses, args.poses)} poses and extrapolated per pose; "
         f"batched: fastest of {args.repeats} runs"
     )
-    print(f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
+    print(f"machine: {machine()}")
+    print(f"python {platform.python_version()}, numpy {np.__version__}")
+    if args.device:
+        import torch
+
+        from bopsurg.metrics import torch_backend as tb
+
+        dev = tb.resolve_device(args.device)
+        name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU"
+        print(
+            f"torch {torch.__version__}, device {dev} ({name}), {torch.get_num_threads()} threads"
+        )
     rows = []
     for name, pts in models.items():
         hull = metrics.hull_vertices(pts).shape[0]
         print(f"\nmodel {name}: {len(pts)} vertices, {hull} on the convex hull")
-        print(
-            f"{'metric':<18}{'bopsurg ms/pose':>16}{'ref ms/pose':>13}{'speed-up':>10}"
-            f"{'max abs dev':>13}{'max rel dev':>13}{'peak MB':>9}"
-        )
-        for r in run_model(name, pts, args):
-            rows.append(r)
-            ref_ms = f"{r['reference_ms_per_pose']:.4f}" if r["metric"] in REF else "-"
-            speed = f"{r['speedup']:.1f}x" if r["metric"] in REF else "-"
-            peak = f"{r['peak_mb']:.1f}" if r["metric"] in REF else "-"
-            print(
-                f"{r['metric']:<18}{r['bopsurg_ms_per_pose']:>16.4f}{ref_ms:>13}{speed:>10}"
-                f"{r['max_abs_dev']:>13.2e}{r['max_rel_dev']:>13.2e}{peak:>9}"
-            )
+        model_rows = run_model(name, pts, args)
+        print_rows(model_rows)
+        rows += model_rows
     print(
         "\ndeviations: batched numpy vs the reference loop on the reference subset; torch rows:"
-        " torch vs batched numpy on the torch subset (dense evaluation of every symmetry)"
+        " torch vs batched numpy on all poses"
     )
+    print_torch_summary(rows, args.poses)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\nprocess peak RSS: {rss:.0f} MB (includes the interpreter, numpy, scipy, torch)")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=1))
+        clean = [{k: v for k, v in r.items() if k != "values"} for r in rows]
+        args.json.write_text(json.dumps({"machine": machine(), "rows": clean}, indent=1))
 
 
 if __name__ == "__main__":

@@ -134,6 +134,13 @@ def register(sub: Subparsers) -> None:
         "recall-vs-threshold and BOP24 precision-recall curves, PNG + PDF (needs matplotlib)",
     )
     add_executor_args(p, unit="scene")
+    p.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="where MSSD, MSPD and ADD are computed: cpu (numpy), cuda (torch; same values to "
+        "1e-9), auto (cuda for large batches when torch sees a GPU, else cpu; default)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.set_defaults(func=run)
 
@@ -180,6 +187,7 @@ def run(args: argparse.Namespace) -> int:
     from bopsurg.cli.eval_coco import run_coco
     from bopsurg.cli.eval_stats import write_intervals
     from bopsurg.evaluation.coco_eval import is_coco_results
+    from bopsurg.evaluation.device import metric_device
     from bopsurg.evaluation.runner import evaluate, evaluate_distributed, write_evaluation
     from bopsurg.evaluation.summary import format_table
     from bopsurg.evaluation.tasks import add_detection_scores, resolve_tasks
@@ -202,26 +210,27 @@ def run(args: argparse.Namespace) -> int:
         "vsd_delta": dataset.vsd_delta_mm if args.vsd_delta is None else args.vsd_delta,
         "instance_metrics": [m.strip() for m in args.metrics.split(",") if m.strip()],
     }
-    if executor is None:
-        result = evaluate(
-            dataset,
-            est,
-            targets=targets,
-            renderer=renderer,
-            progress=not args.no_progress,
-            **options,
-        )
-    else:  # scenes in parallel: each worker loads the renderer plugin itself
-        result = evaluate_distributed(
-            dataset,
-            est,
-            executor=executor,
-            targets=targets,
-            renderer_name=_renderer_name(renderer),
-            progress=not args.no_progress,
-            **options,
-        )
-    det = add_detection_scores(result.scores, tasks, dataset, est, image_targets)
+    with metric_device(args.device):  # MSSD, MSPD, ADD on the CPU or a GPU
+        if executor is None:
+            result = evaluate(
+                dataset,
+                est,
+                targets=targets,
+                renderer=renderer,
+                progress=not args.no_progress,
+                **options,
+            )
+        else:  # scenes in parallel: each worker loads the renderer plugin itself
+            result = evaluate_distributed(
+                dataset,
+                est,
+                executor=executor,
+                targets=targets,
+                renderer_name=_renderer_name(renderer),
+                progress=not args.no_progress,
+                **options,
+            )
+        det = add_detection_scores(result.scores, tasks, dataset, est, image_targets)
     meta: dict[str, object] = {
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),

@@ -127,15 +127,17 @@ def instance_ambiguity(
             for sid in np.unique(scene_ids)
         }
         masked = [sid for sid, has in with_masks.items() if has]
+        im_ids, gt_ids = rows["im_id"].to_numpy(), rows["gt_id"].to_numpy()
+        ends = np.full((sel.size, 2), np.nan)  # filled in numpy: per-cell pandas writes are slow
         for k in np.flatnonzero(np.isin(scene_ids, masked)):
-            row = rows.iloc[k]
             scene = dataset.scene(int(scene_ids[k]))
-            path = scene.mask_visib_path(int(row.im_id), int(row.gt_id))
+            path = scene.mask_visib_path(int(im_ids[k]), int(gt_ids[k]))
             if not path.exists():
                 continue
             mask = load_mask(path)
-            out.iloc[sel[k], 0] = float(_on_mask(mask, uv[k, 0]))
-            out.iloc[sel[k], 1] = float(_on_mask(mask, uv[k, 1]))
+            ends[k] = _on_mask(mask, uv[k, 0]), _on_mask(mask, uv[k, 1])
+        out.iloc[sel, 0] = ends[:, 0]
+        out.iloc[sel, 1] = ends[:, 1]
     return out
 
 

@@ -34,7 +34,7 @@ from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.results import PoseEstimates, average_time_per_image
 from bopsurg.bop.targets import ImageTarget
 from bopsurg.errors import DatasetError
-from bopsurg.evaluation import bop19
+from bopsurg.evaluation import bop19, device
 from bopsurg.evaluation.matching import greedy_match
 from bopsurg.evaluation.tables import GtTable, estimates_frame, load_gt_table, rank_within_groups
 
@@ -252,8 +252,8 @@ def pair_errors(
         syms = metrics.symmetry_transforms(info, max_sym_disc_step)
         Re, te = estimates.R[e_idx[sel]], estimates.t[e_idx[sel]]
         Rg, tg = gt.R[g_idx[sel]], gt.t[g_idx[sel]]
-        mssd[sel] = metrics.mssd(Re, te, Rg, tg, pts, syms)
-        mspd[sel] = metrics.mspd(Re, te, Rg, tg, gt.K[g_idx[sel]], pts, syms)
+        mssd[sel] = device.mssd(Re, te, Rg, tg, pts, syms)
+        mspd[sel] = device.mspd(Re, te, Rg, tg, gt.K[g_idx[sel]], pts, syms)
         diameter[sel] = float(info["diameter"])
     te_dist = metrics.te(estimates.t[e_idx], gt.t[g_idx])
     mssd_mm = np.where(te_dist < diameter, mssd, np.inf)

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.results import PoseEstimates
+from bopsurg.evaluation import device
 from bopsurg.evaluation.tables import GtTable
 from bopsurg.metrics.registry import Need, PairBatch, metric
 from bopsurg.metrics.symmetry import Symmetries, symmetry_transforms
@@ -71,7 +72,8 @@ def pair_errors(
     models: ModelCache,
     which: Sequence[str],
 ) -> dict[str, F64]:
-    """Registered metrics ``which`` of pairs (estimate e_idx[i], GT g_idx[i]), batched per object.
+    """Registered metrics ``which`` of pairs (estimate e_idx[i], GT g_idx[i]), batched per object
+    (MSSD, MSPD and ADD on the device of :func:`bopsurg.evaluation.device.metric_device`).
 
     Returns:
         Per metric name a (P,) array in pair order (NaN only when P is 0).
@@ -93,5 +95,5 @@ def pair_errors(
             K=gt.K[g_idx[sel]] if Need.CAMERA in needs else None,
         )
         for m in chosen:
-            out[m.name][sel] = m.function(batch)
+            out[m.name][sel] = (device.batched(m.name) or m.function)(batch)
     return out

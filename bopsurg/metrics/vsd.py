@@ -67,6 +67,25 @@ def _taus(taus: Sequence[float] | ArrayLike, cost: str) -> F64:
     return tau
 
 
+def _window_origin(window: tuple[slice, slice]) -> tuple[int, int]:
+    """(row, column) of a window's top-left pixel."""
+    return int(window[0].start), int(window[1].start)
+
+
+def _support_window(a: NDArray[np.floating], b: NDArray[np.floating]) -> tuple[slice, slice] | None:
+    """Rows and columns of the bounding box of the pixels where ``a`` or ``b`` is > 0.
+
+    Only there can a pixel be visible (both visibility masks need d_model > 0), so VSD works
+    on this window: same values, as depth_to_distance is bit-identical on windows.
+    """
+    rows = np.flatnonzero((a > 0).any(axis=1) | (b > 0).any(axis=1))
+    if rows.size == 0:
+        return None
+    r = slice(int(rows[0]), int(rows[-1]) + 1)
+    cols = np.flatnonzero((a[r] > 0).any(axis=0) | (b[r] > 0).any(axis=0))
+    return r, slice(int(cols[0]), int(cols[-1]) + 1)
+
+
 def vsd(
     depth_test: ArrayLike,
     depth_est: ArrayLike,
@@ -119,9 +138,11 @@ def vsd(
     tau = _taus(taus, cost)
     diam = None if diameter is None else _positive(diameter, "diameter")
 
-    dist_test = depth_to_distance(test, K_m)
-    dist_gt = depth_to_distance(gt, K_m)
-    dist_est = depth_to_distance(est, K_m)
+    window = _support_window(est, gt)
+    if window is None:
+        return np.ones(tau.size)
+    dist_test, dist_est, dist_gt = (depth_to_distance(d[window], K_m, _window_origin(window))
+                                    for d in (test, est, gt))  # fmt: skip
     visib_gt = estimate_visib_mask_gt(dist_test, dist_gt, delta, visib_mode)
     visib_est = estimate_visib_mask_est(dist_test, dist_est, visib_gt, delta, visib_mode)
     inter = np.logical_and(visib_gt, visib_est)

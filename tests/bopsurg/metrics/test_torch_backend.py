@@ -108,3 +108,44 @@ def test_cuda_equals_numpy() -> None:
     )
     assert_close(_np(tb.add_torch(*pairs, pts, device="cuda")), add(*pairs, pts))
     assert tb.resolve_device("auto").type == "cuda"
+
+
+@pytest.mark.parametrize("model", ["box", "arc"])
+def test_bop_symmetry_set_prunes_to_the_numpy_values(model: str) -> None:
+    """315 symmetries and more vertices than the second bound: every stage of the search runs
+    (bounds, refinement, full evaluations of the survivors), values as the numpy path."""
+    rng = np.random.default_rng(7)
+    pts = box_model(rng, 1200) if model == "box" else arc_model(rng, 1200)
+    pairs = pose_pairs(rng, 40, deg=8.0, mm=4.0)
+    syms = symmetry_transforms(CONT_Z, 0.01)
+    assert_close(_np(tb.mssd_torch(*pairs, pts, syms, device="cpu")), mssd(*pairs, pts, syms))
+    assert_close(
+        _np(tb.mspd_torch(*pairs, K_CAM, pts, syms, device="cpu")), mspd(*pairs, K_CAM, pts, syms)
+    )
+
+
+def test_off_centre_model_keeps_float64_accuracy() -> None:
+    """A model far from its origin: the squared-distance products are taken about the
+    vertices' centre, so the search stays exact (the value is recomputed directly anyway)."""
+    rng = np.random.default_rng(8)
+    pts = box_model(rng, 400) + np.array([800.0, -500.0, 300.0])
+    (R_est, t_est, R_gt, t_gt), _, syms = _data(0)
+    t_est, t_gt = t_est + 2000.0, t_gt + 2000.0
+    got = tb.mssd_torch(R_est, t_est, R_gt, t_gt, pts, syms, device="cpu")
+    assert_close(_np(got), mssd(R_est, t_est, R_gt, t_gt, pts, syms))
+
+
+def test_float32_bulk_work_returns_near_float64_values() -> None:
+    pairs, pts, syms = _data(5, n=30)
+    got = tb.mssd_torch(*pairs, pts, syms, device="cpu", dtype=torch.float32)
+    assert got.dtype == torch.float32
+    np.testing.assert_allclose(_np(got), mssd(*pairs, pts, syms), rtol=1e-5)
+
+
+def test_empty_batch_and_explicit_candidates() -> None:
+    pairs, pts, syms = _data(6)
+    empty = [a[:0] for a in pairs]
+    assert tb.mssd_torch(*empty, pts, syms, device="cpu").shape == (0,)
+    assert tb.mspd_torch(*empty, K_CAM, pts, syms, device="cpu").shape == (0,)
+    got = tb.mssd_torch(*pairs, pts, syms, candidates=pts, device="cpu")  # all vertices
+    assert_close(_np(got), mssd(*pairs, pts, syms))

@@ -97,6 +97,22 @@ def test_equals_reference_on_random_images(seed: int, cost: str, normalized: boo
     assert np.all((got >= 0) & (got <= 1))
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_small_object_window_equals_reference(seed: int) -> None:
+    """Renderings cover a small off-centre patch (as an object in a large image): VSD works on
+    their bounding window only, with the values of the full-image reference."""
+    rng = np.random.default_rng(seed)
+    h, w = 60, 80
+    K = np.array([[300.0, 0.0, 39.5], [0.0, 310.0, 29.0], [0.0, 0.0, 1.0]])
+    test = rng.uniform(200, 400, (h, w)) * (rng.random((h, w)) > 0.1)
+    gt, est = np.zeros((h, w)), np.zeros((h, w))
+    gt[41:50, 7:19] = rng.uniform(250, 350, (9, 12)) * (rng.random((9, 12)) > 0.3)
+    est[44:53, 12:25] = rng.uniform(250, 350, (9, 13)) * (rng.random((9, 13)) > 0.3)
+    got = vsd(test, est, gt, K, 15.0, BOP19_TAUS, 60.0)
+    exp = vsd_ref(test, est, gt, K, 15.0, BOP19_TAUS, True, 60.0)
+    np.testing.assert_allclose(got, exp, rtol=1e-12, atol=0)
+
+
 def test_float32_difference_like_the_reference() -> None:
     # d_model − d_test = 15.000001 in float64 but 15.0 in float32: visible, as the reference
     d_test = np.array([[1000.0]])
