@@ -225,7 +225,8 @@ RECIPES = sorted((Path(__file__).parents[2] / "bench" / "recipes").glob("*.yaml"
 def test_shipped_recipes_resolve_and_say_what_they_set(recipe, capsys):
     """The model card's commands pass these files to ``bopsurg train --config``: each must
     still resolve (no key renamed away under it), and every value it sets must reach the run."""
-    kind = "detector" if "detector" in recipe.name else "pose"
+    kinds = ("detector", "seg", "ends")
+    kind = next((k for k in kinds if k in recipe.stem.split("_")), "pose")
     conf = _dump(capsys, kind, "--config", str(recipe))
     for section, values in yaml.safe_load(recipe.read_text(encoding="utf-8")).items():
         if not isinstance(values, dict):
@@ -234,3 +235,20 @@ def test_shipped_recipes_resolve_and_say_what_they_set(recipe, capsys):
         for key, value in values.items():
             if key != "preset":  # augment's named starting set, resolved into its fields
                 assert conf[section][key] == value, f"{section}.{key}"
+
+
+@pytest.mark.parametrize(
+    ("item", "needle"),
+    [
+        ("recipe.lr", "--set 'recipe.lr': expected SECTION.KEY=VALUE"),
+        ("recipes.lr=1", "unknown section 'recipes'"),
+        ("recipe.lr=[1", "the value is not valid YAML"),
+        ("recipe.lrr=1", "recipe: unknown key 'lrr'"),
+    ],
+)
+def test_set_overrides_one_field_after_the_file_and_flags(tmp_path, capsys, item, needle):
+    path = _write(tmp_path / "c.yaml", "recipe: {lr: 0.1, epochs: 3}\nseed: 2\n")
+    conf = _dump(capsys, "pose", "--config", path, "--lr", "0.2", "--set", "recipe.lr=0.3")
+    assert (conf["recipe"]["lr"], conf["recipe"]["epochs"], conf["seed"]) == (0.3, 3, 2)
+    assert _dump(capsys, "pose", "--set", "seed=5", "--set", "pose.roi_in=160")["seed"] == 5
+    assert needle in _error(capsys, ["pose", "--set", item, "--dump-config"])
