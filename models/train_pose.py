@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -291,14 +291,11 @@ def train_pose(
         restart: Discard a previous run in ``out``.
         progress: Show progress bars.
         max_instances: Use only the first N training instances (smoke tests).
-        config: The network's config (default: the preset's). A symmetric object is set by
-            ``recipe.symmetric`` or ``config.symmetric`` (either sets both).
+        config: The network's config (default: the preset's); ``recipe.symmetric`` or
+            ``config.symmetric`` sets both.
         loader: How instances are read (workers, cache); does not change the result.
     """
-    from dataclasses import replace
-
-    recipe = recipe or PoseRecipe()
-    loader = loader or LoaderConfig()
+    recipe, loader = recipe or PoseRecipe(), loader or LoaderConfig()
     dev = training.resolve_device(device)
     preset_cfg = PoseConfig.preset(preset)
     cfg = preset_cfg if config is None else config
@@ -313,50 +310,62 @@ def train_pose(
         cfg.to_dict(),
     )  # fmt: skip
     legacy_cfg = replace(preset_cfg, symmetric=cfg.symmetric)  # runs before config files
-    legacy = {
-        "model": legacy_cfg.to_dict(),
-        "recipe": {
-            "augment": asdict(PhotometricConfig()),
-            "init": "",
-            "mirror": 0.0,
-            "mirror_splits": [],
-            "hue_whole": 0.0,
-            "roll": 0.0,
-            "roll_deg": 180.0,
-        },
-    }
+    legacy = {"model": legacy_cfg.to_dict(), "recipe": LEGACY_RECIPE}
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
     write_config(out, resolved("pose", preset, seed, cfg, recipe, loader))
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
-    train = load_pose_set(
-        ds, splits.train_ids, obj_id, min_visib=recipe.min_visib,
-        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+    train, val = (
+        load_pose_set(
+            split_ds, ids, obj_id, min_visib=min_visib,
+            cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+        )
+        for split_ds, ids, min_visib in (
+            (ds, splits.train_ids, recipe.min_visib), (splits.val, splits.val_ids, 0.3)
+        )
     )  # fmt: skip
     if max_instances is not None:
         train = train.head(max_instances)
-    val = load_pose_set(
-        splits.val, splits.val_ids, obj_id, min_visib=0.3,
-        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
-    )  # fmt: skip
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
-
-    model = GdrPoseNet(cfg)
-    if recipe.init and state is None:
-        training.init_weights(
-            model, recipe.init, "pose", cfg.to_dict(), geo.to_meta(), TRAINING_ONLY
-        )
-    model = model.to(dev)
+    model = _network(cfg, recipe.init if state is None else "", geo).to(dev)
     export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
-    mirrorable = _mirrorable(train, ds, recipe.mirror_splits)
-    # the needle's symmetry through its plane, from its mesh (checked): what a mirror shows
-    reflection = object_reflection(ds, obj_id) if recipe.mirror > 0 else None
-    step = _step_fn(model, cfg, geo, recipe, dev, seed, mirrorable, reflection)
-    return training.fit(
+    step = _step_fn(model, cfg, geo, recipe, dev, seed, *_mirror(train, ds, obj_id, recipe))
+    path: Path = training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export,
         device=dev, progress=progress,
         load=BatchReader(train, train.collate, loader.num_workers),
     )  # fmt: skip
+    return path
+
+
+#: Recipe settings that runs written by an older bopsurg lack, at the value they had then.
+LEGACY_RECIPE = {
+    "augment": asdict(PhotometricConfig()),
+    "init": "",
+    "mirror": 0.0,
+    "mirror_splits": [],
+    "hue_whole": 0.0,
+    "roll": 0.0,
+    "roll_deg": 180.0,
+}
+
+
+def _network(cfg: PoseConfig, init: str, geo: ObjectGeometry) -> GdrPoseNet:
+    """A fresh pose head (seeded by the caller), or, with ``init``, that checkpoint's."""
+    model = GdrPoseNet(cfg)
+    if init:
+        training.init_weights(model, init, "pose", cfg.to_dict(), geo.to_meta(), TRAINING_ONLY)
+    return model
+
+
+def _mirror(
+    train: PoseSet, ds: BopDataset, obj_id: int, recipe: PoseRecipe
+) -> tuple[torch.Tensor | None, PlaneReflection | None]:
+    """Which samples may be mirrored (:func:`_mirrorable`) and the object's reflection (its
+    symmetry through its plane, from its mesh, checked: what a mirror shows; None without
+    ``recipe.mirror``)."""
+    reflection = object_reflection(ds, obj_id) if recipe.mirror > 0 else None
+    return _mirrorable(train, ds, recipe.mirror_splits), reflection
 
 
 def _mirrorable(
@@ -411,6 +420,9 @@ def _step_fn(
         roi_img, coord2d, target = roi_batch(
             batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds, recipe.hue_whole
         )
-        return gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
+        losses: dict[str, torch.Tensor] = gdr_losses(
+            model(roi_img, coord2d), target, points, cfg, syms
+        )
+        return losses
 
     return step
