@@ -65,11 +65,17 @@ class LoaderConfig:
         cache_items: At most this many cached samples per set and process as well (None:
             no count limit; 0: no cache). Files written before ``cache_mb`` existed hold
             ``cache_items: 0``, and keep meaning no cache.
+        shared_cache: Detector and pose sets keep their decoded samples (at the training
+            resolution) in one memory-mapped file that the training process and every
+            worker share (:class:`~bopsurg.models.data.SlotCache`; ``/dev/shm`` where it
+            has room): each sample is decoded once in all, and ``cache_mb`` is the budget
+            per set in all, not per process. False: each process its own LRU cache.
     """
 
     num_workers: int = 0
     cache_mb: int = 4096
     cache_items: int | None = None
+    shared_cache: bool = True
 
     def __post_init__(self) -> None:
         if self.num_workers < 0 or self.cache_mb < 0:

@@ -61,8 +61,13 @@ class DetectorRecipe:
     #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
+    #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
+    #: :attr:`~bopsurg.models.training.Schedule.precision`).
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
+        if self.precision not in training.PRECISIONS:
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if not 0.0 <= self.hue_whole <= 1.0:
             raise ValueError(f"hue_whole is a share of the images, in [0, 1], got {self.hue_whole}")
 
@@ -70,7 +75,7 @@ class DetectorRecipe:
         """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
         return training.Schedule(
             self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
-            0.0, self.val_every,
+            0.0, self.val_every, precision=self.precision,
         )  # fmt: skip
 
 
@@ -158,7 +163,7 @@ def train_detector(
     train, val = (
         load_detection_set(
             ds, ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
-            cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+            cache_mb=loader.cache_mb, cache_items=loader.cache_items, shared=loader.shared_cache,
         )
         for ds, ids in ((splits.train, splits.train_ids), (splits.val, splits.val_ids))
     )  # fmt: skip
@@ -178,7 +183,7 @@ def train_detector(
         step=_step_fn(model, recipe, dev, seed),
         validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev),
         export=export, device=dev, progress=progress,
-        load=BatchReader(train, train.collate, loader.num_workers),
+        load=BatchReader(train, train.collate, loader.num_workers, dev.type == "cuda"),
     )  # fmt: skip
     return path
 
@@ -186,6 +191,7 @@ def train_detector(
 #: Recipe settings that runs written by an older bopsurg lack, at the value they had then.
 LEGACY_RECIPE = {
     "augment": asdict(PhotometricConfig()),
+    "precision": "fp32",
     "init": "",
     "hsv": [0.015, 0.7, 0.4],
     "hue_whole": 0.0,
@@ -223,8 +229,8 @@ def _step_fn(
     l1_from = math.ceil(recipe.epochs * (1 - recipe.l1_fraction))
 
     def step(batch: DetectionBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
-        images = batch.images.to(dev).float() / 255
-        targets = [t.to(dev) for t in batch.targets]
+        images = batch.images.to(dev, non_blocking=True).float() / 255
+        targets = [t.to(dev, non_blocking=True) for t in batch.targets]
         images = hsv_jitter(images, gen, *recipe.hsv, whole=recipe.hue_whole)
         images, targets = random_flip(images, targets, gen, p=recipe.flip)
         images, targets = random_affine(

@@ -89,8 +89,13 @@ class PoseRecipe:
     #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
+    #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
+    #: :attr:`~bopsurg.models.training.Schedule.precision`).
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
+        if self.precision not in training.PRECISIONS:
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         for name in ("mirror", "hue_whole", "roll"):
             share = getattr(self, name)
             if not 0.0 <= share <= 1.0:
@@ -102,7 +107,7 @@ class PoseRecipe:
         """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
         return training.Schedule(
             self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
-            self.anneal_from, self.val_every,
+            self.anneal_from, self.val_every, precision=self.precision,
         )  # fmt: skip
 
 
@@ -188,19 +193,20 @@ def roi_batch(
     a, c0 = data.ctx[:, 0].to(device), data.ctx[:, 1:].to(device)
     C = data.rgb.shape[-1]
     c_centre, c_side = (centre - c0) * a[:, None] + C / 2, side * a  # in the context crop
-    rgb = data.rgb.to(device).float() / 255
+    rgb = data.rgb.to(device, non_blocking=True).float() / 255
     roi_img = crop(rgb, c_centre, c_side, cfg.roi_in, "bilinear")
     if gen is not None:
         roi_img = hsv_jitter(roi_img, gen, *hsv, whole=hue_whole)
         if augment is not None and seeds is not None:
             roi_img = augment_batch(roi_img, augment, seeds)
-    mask_full = data.mask[:, None].to(device).float()
+    mask_full = data.mask[:, None].to(device, non_blocking=True).float()
     mask = crop(mask_full, c_centre, c_side, cfg.roi_out, "nearest")
     soft = None  # the covered fraction of each map cell (4×4 nearest samples), for BCE only
     if cfg.mask_loss == "bce":
         soft = crop(mask_full, c_centre, c_side, 4 * cfg.roi_out, "nearest")
         soft = torch.nn.functional.avg_pool2d(soft, 4)
-    xyz = crop(data.xyz.to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
+    xyz = data.xyz.to(device, non_blocking=True).float()
+    xyz = crop(xyz, c_centre, c_side, cfg.roi_out, "nearest")
     fg = mask[:, 0] > 0.5
     xyz_hw = xyz.permute(0, 2, 3, 1)
     region = xyz_to_region(xyz_hw, fg, geo.fps.to(device))
@@ -317,7 +323,7 @@ def train_pose(
     train, val = (
         load_pose_set(
             split_ds, ids, obj_id, min_visib=min_visib,
-            cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+            cache_mb=loader.cache_mb, cache_items=loader.cache_items, shared=loader.shared_cache,
         )
         for split_ds, ids, min_visib in (
             (ds, splits.train_ids, recipe.min_visib), (splits.val, splits.val_ids, 0.3)
@@ -333,7 +339,7 @@ def train_pose(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export,
         device=dev, progress=progress,
-        load=BatchReader(train, train.collate, loader.num_workers),
+        load=BatchReader(train, train.collate, loader.num_workers, dev.type == "cuda"),
     )  # fmt: skip
     return path
 
@@ -341,6 +347,7 @@ def train_pose(
 #: Recipe settings that runs written by an older bopsurg lack, at the value they had then.
 LEGACY_RECIPE = {
     "augment": asdict(PhotometricConfig()),
+    "precision": "fp32",
     "init": "",
     "mirror": 0.0,
     "mirror_splits": [],

@@ -353,6 +353,10 @@ class Timer:
         return time.perf_counter() - self.start
 
 
+#: What :attr:`Schedule.precision` may be.
+PRECISIONS = ("fp32", "bf16")
+
+
 @dataclass(frozen=True)
 class Schedule:
     """The hyper-parameters the epoch loop reads from a trainer's recipe.
@@ -379,6 +383,12 @@ class Schedule:
     anneal_from: float
     val_every: int
     steps_per_epoch: int = 0
+    precision: str = "fp32"
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got "
+                             f"{self.precision!r}")  # fmt: skip
 
     def epoch_steps(self, n_train: int) -> int:
         """Optimiser steps of one epoch over ``n_train`` samples."""
@@ -457,6 +467,8 @@ def fit(
         progress: Show a progress bar per epoch.
         load: Reads the epoch's index batches (from disk); ``step`` then gets its batches.
     """
+    if device.type == "cuda":  # convolutions run NHWC on tensor cores
+        model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     p = _start(model, state, schedule)
     for epoch in range(p.start, schedule.epochs):
         gen = epoch_generator(run.settings.seed, epoch)
@@ -487,29 +499,42 @@ def _train_epoch(
     gen: torch.Generator,
     epoch: int,
 ) -> dict[str, float]:
-    """The steps of one epoch over ``bar``'s batches; the last learning rate and the mean of
-    each loss (``loss_NAME``)."""
+    """The steps of one epoch over ``bar``'s batches: the last learning rate, the mean of
+    each loss (``loss_NAME``), and where the time went: ``samples_per_s`` and
+    ``data_wait``, the share of the epoch spent waiting for the loader's next batch."""
     steps_per_epoch = schedule.epoch_steps(n_train)
     total = schedule.epochs * steps_per_epoch
     warmup = int(schedule.warmup_epochs * steps_per_epoch)
-    sums: dict[str, float] = {}
-    lr = p.opt.param_groups[0]["lr"]
+    sums: dict[str, torch.Tensor] = {}
+    lr, waited, start = p.opt.param_groups[0]["lr"], 0.0, time.perf_counter()
+    device = next(model.parameters()).device
+    autocast = torch.autocast(device.type, torch.bfloat16, enabled=schedule.precision == "bf16")
     model.train()
-    for k, batch in enumerate(bar):
-        done = epoch * steps_per_epoch + k  # steps before this one
-        lr = flat_cosine_lr(done, total, warmup, schedule.anneal_from, schedule.lr)
+    batches_in = iter(bar)
+    for k in range(len(bar)):
+        t = time.perf_counter()
+        batch = next(batches_in)
+        waited += time.perf_counter() - t
+        lr = flat_cosine_lr(epoch * steps_per_epoch + k, total, warmup, schedule.anneal_from,
+                            schedule.lr)  # fmt: skip
         for g in p.opt.param_groups:
             g["lr"] = lr
-        losses = step(batch, gen, epoch)
+        with autocast:
+            losses = step(batch, gen, epoch)
         p.opt.zero_grad(set_to_none=True)
         losses["total"].backward()  # type: ignore[no-untyped-call]
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         p.opt.step()
         p.ema.update(model)
-        for name, v in losses.items():
-            sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
-        bar.set_postfix(loss=f"{losses['total'].item():.3f}")
-    return {"lr": float(lr), **{f"loss_{n}": v / steps_per_epoch for n, v in sums.items()}}
+        for name, v in losses.items():  # summed where they are: no wait for the device
+            sums[name] = sums.get(name, 0) + torch.as_tensor(v).detach().float()
+        if not bar.disable:
+            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
+    means = {f"loss_{n}": float(v) / steps_per_epoch for n, v in sums.items()}
+    seconds = time.perf_counter() - start  # after float(): the device has caught up
+    speed = {"samples_per_s": len(bar) * schedule.batch_size / seconds,
+             "data_wait": waited / seconds}  # fmt: skip
+    return {"lr": float(lr), **means, **speed}
 
 
 def _start(model: nn.Module, state: dict[str, Any] | None, schedule: Schedule) -> _Progress:

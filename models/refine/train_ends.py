@@ -225,8 +225,13 @@ class EndsRecipe:
     augment: PhotometricConfig = field(default_factory=_domain)
     #: Exported ``needle_ends`` checkpoint (same config) to start from; "" = random weights.
     init: str = ""
+    #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
+    #: :attr:`~bopsurg.models.training.Schedule.precision`).
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
+        if self.precision not in training.PRECISIONS:
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if not math.isfinite(self.margin):
             raise ValueError(f"margin must be a finite logit margin, got {self.margin}")
         if self.steps_per_epoch < 1:
@@ -242,7 +247,7 @@ class EndsRecipe:
         """What the epoch loop reads; the cosine starts right after the warm-up."""
         return training.Schedule(
             self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
-            0.0, self.val_every, self.steps_per_epoch,
+            0.0, self.val_every, self.steps_per_epoch, self.precision,
         )  # fmt: skip
 
 

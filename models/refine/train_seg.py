@@ -100,8 +100,13 @@ class SegRecipe:
     augment: PhotometricConfig = field(default_factory=PhotometricConfig)
     #: Segmenter checkpoint to start from (:func:`init_weights`); "" = random weights.
     init: str = ""
+    #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
+    #: :attr:`~bopsurg.models.training.Schedule.precision`).
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
+        if self.precision not in training.PRECISIONS:
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if not 0.0 <= self.hue <= 0.5:
             raise ValueError(f"hue must lie in [0, 0.5] turns, got {self.hue}")
         if not 0.0 <= self.hue_whole <= 1.0:
@@ -113,7 +118,7 @@ class SegRecipe:
         """What the epoch loop reads; the cosine starts right after the warm-up."""
         return training.Schedule(
             self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
-            0.0, self.val_every, self.steps_per_epoch,
+            0.0, self.val_every, self.steps_per_epoch, self.precision,
         )  # fmt: skip
 
 

@@ -51,7 +51,9 @@ def test_dump_config_gives_every_field_and_round_trips(tmp_path, capsys):
     assert conf["pose"]["w_region"] == 1.0
     assert conf["recipe"]["epochs"] == 40
     assert conf["augment"]["jpeg_p"] == 0.0
-    assert conf["loader"] == {"num_workers": 0, "cache_mb": 4096, "cache_items": None}
+    assert conf["loader"] == {
+        "num_workers": 0, "cache_mb": 4096, "cache_items": None, "shared_cache": True,
+    }  # fmt: skip
     again = _dump(capsys, "pose", "--config", _write(tmp_path / "c.yaml", yaml.safe_dump(conf)))
     assert again == conf
     det = _dump(capsys, "detector", "--preset", "s")
