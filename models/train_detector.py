@@ -64,8 +64,13 @@ class DetectorRecipe:
     #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
     #: :attr:`~bopsurg.models.training.Schedule.precision`).
     precision: str = "fp32"
+    #: Steps per epoch; 0: one pass over the training samples. More than a pass draws
+    #: from consecutive shuffles (a small split trained for a fixed number of steps).
+    steps_per_epoch: int = 0
 
     def __post_init__(self) -> None:
+        if self.steps_per_epoch < 0:
+            raise ValueError(f"steps_per_epoch must be >= 0, got {self.steps_per_epoch}")
         if self.precision not in training.PRECISIONS:
             raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if not 0.0 <= self.hue_whole <= 1.0:
@@ -75,7 +80,7 @@ class DetectorRecipe:
         """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
         return training.Schedule(
             self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
-            0.0, self.val_every, precision=self.precision,
+            0.0, self.val_every, self.steps_per_epoch, self.precision,
         )  # fmt: skip
 
 
@@ -192,6 +197,7 @@ def train_detector(
 LEGACY_RECIPE = {
     "augment": asdict(PhotometricConfig()),
     "precision": "fp32",
+    "steps_per_epoch": 0,
     "init": "",
     "hsv": [0.015, 0.7, 0.4],
     "hue_whole": 0.0,

@@ -92,8 +92,13 @@ class PoseRecipe:
     #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
     #: :attr:`~bopsurg.models.training.Schedule.precision`).
     precision: str = "fp32"
+    #: Steps per epoch; 0: one pass over the training samples. More than a pass draws
+    #: from consecutive shuffles (a small split trained for a fixed number of steps).
+    steps_per_epoch: int = 0
 
     def __post_init__(self) -> None:
+        if self.steps_per_epoch < 0:
+            raise ValueError(f"steps_per_epoch must be >= 0, got {self.steps_per_epoch}")
         if self.precision not in training.PRECISIONS:
             raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         for name in ("mirror", "hue_whole", "roll"):
@@ -107,7 +112,7 @@ class PoseRecipe:
         """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
         return training.Schedule(
             self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
-            self.anneal_from, self.val_every, precision=self.precision,
+            self.anneal_from, self.val_every, self.steps_per_epoch, self.precision,
         )  # fmt: skip
 
 
@@ -348,6 +353,7 @@ def train_pose(
 LEGACY_RECIPE = {
     "augment": asdict(PhotometricConfig()),
     "precision": "fp32",
+    "steps_per_epoch": 0,
     "init": "",
     "mirror": 0.0,
     "mirror_splits": [],
