@@ -48,11 +48,14 @@ regions), paper (ResNet-34 layout, ROI 256, 64 regions), test; seg cpu (visible 
 Seeded: the same command gives the same weights on the same machine and device, whatever
 --workers.
 
-Images are read from disk and decoded when first needed; each set (training, validation)
-keeps its decoded samples in memory up to loader.cache_mb MiB (default 4096, in each
-process that reads it: the training process and each of --workers N's background
-processes), so a set that fits is decoded once, a larger one streams (least recently used
-samples out first). Neither changes the weights.
+Images are read from disk and decoded when first needed; each detector or pose set
+(training, validation) keeps its decoded samples, at the training resolution, in one
+memory-mapped file that the training process and all --workers N background processes share
+(loader.shared_cache; /dev/shm where it has room), up to loader.cache_mb MiB per set
+(default 4096): each sample is decoded once in all, samples past the budget every time. The
+segmenter's contexts (of many sizes) are cached per process, least recently used out
+first. Neither changes the weights. On a GPU: --set recipe.precision=bf16 (autocast), larger
+--batch-size with a scaled --lr, and --workers (bench/bench_train_device.py measures it).
 
 --config FILE (YAML or JSON) sets every field of the model config (sizes, loss weights, DZI
 jitter ...), the recipe (epochs, lr, batch_size, hsv/flip/scale augmentations ...), the

@@ -309,8 +309,10 @@ class SlotCache:
     The file holds the first ``capacity`` samples (as many as ``max_bytes`` allows, and
     ``max_items``); later ones are decoded every time. A sample is written, then flagged as
     filled, so a reader never sees half of one; two processes that decode the same sample
-    write the same bytes. The file lives in ``/dev/shm`` where there is one, and goes when
-    the cache that made it is collected (copies sent to workers only open it).
+    write the same bytes. The file lives in ``/dev/shm`` where there is one; on Linux it is
+    unlinked at once and the workers open it through the creating process's descriptor
+    (``/proc/PID/fd/N``), so it goes with the cache that made it, or with that process when
+    it is killed.
 
     Args:
         n: Samples in the set.
@@ -330,9 +332,16 @@ class SlotCache:
         self.capacity = min(count, room // (self.slot + 1))
         fd, name = tempfile.mkstemp(prefix="bopsurg-samples-", suffix=".bin", dir=folder)
         os.ftruncate(fd, self.capacity * (self.slot + 1))  # sparse: pages come as written
-        os.close(fd)
-        self.path = name
-        self._finalizer = weakref.finalize(self, _unlink, name)
+        own = f"/proc/{os.getpid()}/fd/{fd}"
+        self._finalizer: weakref.finalize[Any, Any] | None
+        if os.path.exists(own):  # Linux: nameless at once, so a killed run leaves nothing
+            os.unlink(name)
+            self.path = own
+            self._finalizer = weakref.finalize(self, os.close, fd)
+        else:
+            os.close(fd)
+            self.path = name
+            self._finalizer = weakref.finalize(self, _unlink, name)
         self._map: np.memmap[Any, np.dtype[np.uint8]] | None = None
         self.hits = self.misses = 0
 
