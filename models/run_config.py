@@ -50,12 +50,13 @@ D = TypeVar("D")
 class LoaderConfig:
     """How training samples are read (not part of the result: a resume may change it).
 
-    Each set (training, validation) caches its decoded samples, least recently used evicted
-    first, within ``cache_mb`` in every process that reads it: the training process, and
-    each of the ``num_workers`` processes for the training set (so up to
-    ``(num_workers + 1) * cache_mb`` in all). A sample costs about 0.25 MB (detector,
-    320x256 input) or 0.65 MB (pose, 256-px context crop), so the default holds about 6,000
-    pose instances: a set that fits is decoded once, a larger one streams from disk.
+    Each set (training, validation) caches its decoded samples within ``cache_mb``: with
+    ``shared_cache`` (detector and pose sets) in one file all its reading processes share,
+    the first samples that fit; otherwise in every process that reads it (the training
+    process and each of the ``num_workers`` processes, so up to ``(num_workers + 1) *
+    cache_mb`` in all), least recently used evicted first. A sample costs about 0.25 MB
+    (detector, 320x256 input) or 0.65 MB (pose, 256-px context crop), so the default holds
+    about 6,000 pose instances: a set that fits is decoded once, a larger one streams.
 
     Attributes:
         num_workers: Background loader processes that read batches ahead (0: read in the
