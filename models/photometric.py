@@ -219,6 +219,12 @@ def augment_batch(images: Tensor, cfg: PhotometricConfig, seeds: Sequence[int] |
     seeds = [int(s) for s in seeds]
     if len(seeds) != images.shape[0]:
         raise ValueError(f"{images.shape[0]} images but {len(seeds)} seeds")
+    with torch.autocast(images.device.type, enabled=False):  # the images' dtype throughout
+        return _augment(images, cfg, seeds)
+
+
+def _augment(images: Tensor, cfg: PhotometricConfig, seeds: list[int]) -> Tensor:
+    """:func:`augment_batch` of an active ``cfg``."""
     u, fields = _batch_draws(cfg, seeds, tuple(images.shape[1:]))
     v = _parameters(cfg, u)
     out = images.clone()

@@ -433,9 +433,8 @@ def _step_fn(
         roi_img, coord2d, target = roi_batch(
             batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds, recipe.hue_whole
         )
-        losses: dict[str, torch.Tensor] = gdr_losses(
-            model(roi_img, coord2d), target, points, cfg, syms
-        )
+        out = {k: v.float() for k, v in model(roi_img, coord2d).items()}  # losses in fp32
+        losses: dict[str, torch.Tensor] = gdr_losses(out, target, points, cfg, syms)
         return losses
 
     return step

@@ -266,7 +266,8 @@ def _step_fn(
         x = jittered(patches[idx], gen, cfg.patch, recipe.turn_deg)
         x = hsv_jitter(x, gen, *recipe.hsv)
         x = augment_batch(x, recipe.augment, batch_seeds(seed, epoch, idx))
-        loss = F.binary_cross_entropy_with_logits(net(x.to(dev)), labels[idx].to(dev))
+        logits = net(x.to(dev)).float()  # the loss in fp32, also under bf16 autocast
+        loss = F.binary_cross_entropy_with_logits(logits, labels[idx].to(dev))
         return {"total": loss}
 
     return step

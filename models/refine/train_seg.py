@@ -305,7 +305,7 @@ def _step_fn(
         x = augment_batch(x, recipe.augment, batch_seeds(seed, epoch, batch.idx))
         if recipe.hue > 0 or recipe.hue_whole > 0:
             x = hsv_jitter(x, gen, recipe.hue, 0.0, 0.0, whole=recipe.hue_whole)
-        return {"total": seg_loss(net(x.to(dev)), y.to(dev))}
+        return {"total": seg_loss(net(x.to(dev)).float(), y.to(dev))}  # the loss in fp32
 
     return step
 
