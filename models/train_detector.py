@@ -236,7 +236,9 @@ def _step_fn(
 
     def step(batch: DetectionBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
         images = batch.images.to(dev, non_blocking=True).float() / 255
-        targets = [t.to(dev, non_blocking=True) for t in batch.targets]
+        counts = [len(t) for t in batch.targets]  # one copy to the device, not one per image
+        flat = torch.cat(batch.targets).to(dev, non_blocking=True)
+        targets = list(torch.split(flat, counts))
         images = hsv_jitter(images, gen, *recipe.hsv, whole=recipe.hue_whole)
         images, targets = random_flip(images, targets, gen, p=recipe.flip)
         images, targets = random_affine(
