@@ -17,7 +17,7 @@ from bopsurg.errors import BopsurgError
 
 log = logging.getLogger(__name__)
 
-HELP = "train the built-in detector, pose head, needle segmenter or end classifier (CPU or GPU)"
+HELP = "train the built-in detector, pose head, needle segmenter or end classifier"
 
 DESCRIPTION = """\
 Train one of the four models of the built-in 'gdrnet' estimator on a BOP dataset split:
