@@ -25,7 +25,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check bopsurg generators models tests bench
 	$(BIN)/lint-imports --no-cache
-	$(BIN)/mypy --strict bopsurg
+	$(BIN)/mypy --strict bopsurg generators models
 
 test: lint
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)

@@ -69,10 +69,14 @@ def _none_modes(cls: type[Any], data: Mapping[str, Any]) -> dict[str, Any]:
         sub = _dataclass_of(hints[key])
         if sub is not None and isinstance(value, Mapping):
             out[key] = _none_modes(sub, value)
-        elif value is None and typing.get_origin(hints[key]) is Literal:
-            if "none" in typing.get_args(hints[key]):
-                out[key] = "none"
+        elif value is None and "none" in _literal_modes(hints[key]):
+            out[key] = "none"
     return out
+
+
+def _literal_modes(tp: Any) -> tuple[Any, ...]:
+    """The values of a ``Literal`` field type (empty for any other type)."""
+    return typing.get_args(tp) if typing.get_origin(tp) is Literal else ()
 
 
 def _as_float(value: Any) -> Any:

@@ -27,11 +27,15 @@ validation frames never share a trajectory replay with training frames.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
+import os
+import tempfile
+import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
@@ -277,6 +281,126 @@ class LruCache(Generic[T]):
         return len(self._items)
 
 
+#: The fixed layout of a sample in a :class:`SlotCache`: the shape and dtype of each array.
+Layout = tuple[tuple[tuple[int, ...], np.dtype[Any]], ...]
+
+
+def _shared_dir(nbytes: int) -> tuple[str, int]:
+    """Where a shared cache of ``nbytes`` lives, and the bytes it may take there: ``/dev/shm``
+    (memory) when half its free space holds it, else the temporary folder (disk, in the
+    page cache), else whichever has more room, half of its free space (a mapping written
+    past a full file system kills the process, so never more)."""
+    room = []
+    for d in ("/dev/shm", tempfile.gettempdir()):
+        if os.path.isdir(d) and os.access(d, os.W_OK):
+            st = os.statvfs(d)
+            room.append((d, st.f_bavail * st.f_frsize // 2))
+    for d, free in room:
+        if free >= nbytes:
+            return d, nbytes
+    return max(room, key=lambda r: r[1]) if room else (tempfile.gettempdir(), 0)
+
+
+class SlotCache:
+    """Decoded samples of one fixed layout in a memory-mapped file that every process reading
+    the set shares (the training process and each loader worker): each sample is decoded
+    once, by whichever process first needs it, and read from the mapping after that.
+
+    The file holds the first ``capacity`` samples (as many as ``max_bytes`` allows, and
+    ``max_items``); later ones are decoded every time. A sample is written, then flagged as
+    filled, so a reader never sees half of one; two processes that decode the same sample
+    write the same bytes. The file lives in ``/dev/shm`` where there is one; on Linux it is
+    unlinked at once and the workers open it through the creating process's descriptor
+    (``/proc/PID/fd/N``), so it goes with the cache that made it, or with that process when
+    it is killed.
+
+    Args:
+        n: Samples in the set.
+        layout: Shape and dtype of each array of a sample (a tuple of arrays or tensors).
+        max_bytes: The budget, bytes.
+        max_items: At most this many samples (None: no count limit).
+    """
+
+    def __init__(
+        self, n: int, layout: Layout, max_bytes: int, max_items: int | None = None
+    ) -> None:
+        self.layout = layout
+        self.sizes = [int(np.prod(shape)) * dt.itemsize for shape, dt in layout]
+        self.slot = sum(self.sizes)
+        count = min(n, max_bytes // max(1, self.slot), n if max_items is None else max_items)
+        folder, room = _shared_dir(count * (self.slot + 1))
+        self.capacity = min(count, room // (self.slot + 1))
+        fd, name = tempfile.mkstemp(prefix="bopsurg-samples-", suffix=".bin", dir=folder)
+        os.ftruncate(fd, self.capacity * (self.slot + 1))  # sparse: pages come as written
+        own = f"/proc/{os.getpid()}/fd/{fd}"
+        self._finalizer: weakref.finalize[Any, Any] | None
+        if os.path.exists(own):  # Linux: nameless at once, so a killed run leaves nothing
+            os.unlink(name)
+            self.path = own
+            self._finalizer = weakref.finalize(self, os.close, fd)
+        else:
+            os.close(fd)
+            self.path = name
+            self._finalizer = weakref.finalize(self, _unlink, name)
+        self._map: np.memmap[Any, np.dtype[np.uint8]] | None = None
+        self.hits = self.misses = 0
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_map"] = None
+        state["_finalizer"] = None  # a copy never removes the file
+        return state
+
+    def _mapping(self) -> np.memmap[Any, np.dtype[np.uint8]]:
+        if self._map is None:
+            self._map = np.memmap(
+                self.path, np.uint8, "r+", shape=(self.capacity * (self.slot + 1),)
+            )
+        return self._map
+
+    def get(self, i: int, make: Callable[[], Any]) -> Any:
+        """Sample ``i``: from the mapping when filled, else ``make()`` (stored when it fits)."""
+        if i >= self.capacity:
+            return make()
+        mm = self._mapping()
+        flags, base = self.capacity * self.slot, i * self.slot
+        if mm[flags + i]:
+            self.hits += 1
+            return self._unpack(mm[base : base + self.slot])
+        self.misses += 1
+        value = make()
+        arrays = [np.asarray(v) for v in (value if isinstance(value, tuple) else (value,))]
+        mm[base : base + self.slot] = np.concatenate([a.reshape(-1).view(np.uint8) for a in arrays])
+        mm[flags + i] = 1
+        return value
+
+    def _unpack(self, raw: np.ndarray) -> Any:
+        out, at = [], 0
+        for (shape, dt), size in zip(self.layout, self.sizes, strict=True):
+            out.append(torch.from_numpy(raw[at : at + size].copy().view(dt).reshape(shape)))
+            at += size
+        return out[0] if len(out) == 1 else tuple(out)
+
+    def __len__(self) -> int:
+        mm = self._mapping()
+        return int(mm[self.capacity * self.slot :].sum()) if self.capacity else 0
+
+
+def _unlink(path: str) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(path)
+
+
+def sample_cache(
+    n: int, layout: Layout, cache_mb: float, cache_items: int | None, shared: bool
+) -> LruCache[Any] | SlotCache:
+    """A set's cache of decoded samples: a :class:`SlotCache` shared by the processes
+    (``shared``), or each process's own :class:`LruCache`."""
+    if shared and cache_mb > 0 and cache_items != 0:
+        return SlotCache(n, layout, int(cache_mb * MIB), cache_items)
+    return _cache(cache_mb, cache_items)
+
+
 def _cache(cache_mb: float, cache_items: int | None) -> LruCache[Any]:
     if cache_mb < 0:
         raise ValueError(f"cache_mb must be >= 0, got {cache_mb}")
@@ -334,6 +458,9 @@ class BatchReader(Generic[T]):
         data: A map-style dataset (``data[i]`` reads sample i from disk).
         collate: Stacks the samples of one batch: ``(samples, indices) -> batch``.
         num_workers: Background loader processes.
+        pin_memory: Batches come in page-locked memory (their ``pin_memory()``), so the
+            copies to a GPU can overlap its work (``non_blocking=True``); with workers.
+        prefetch: Batches each worker reads ahead.
     """
 
     def __init__(
@@ -341,6 +468,8 @@ class BatchReader(Generic[T]):
         data: Dataset[Any],
         collate: Callable[[list[Any], list[int]], T],
         num_workers: int = 0,
+        pin_memory: bool = False,
+        prefetch: int = 2,
     ) -> None:
         self.data, self.collate, self.num_workers = data, collate, num_workers
         self._order = _Order()
@@ -349,7 +478,8 @@ class BatchReader(Generic[T]):
             self._loader = DataLoader(
                 _Keyed(data), batch_sampler=self._order, num_workers=num_workers,
                 collate_fn=_Collate(collate), worker_init_fn=_worker_init,
-                persistent_workers=True, prefetch_factor=2, multiprocessing_context="spawn",
+                persistent_workers=True, prefetch_factor=prefetch, pin_memory=pin_memory,
+                multiprocessing_context="spawn",
             )  # fmt: skip
 
     def __call__(self, index_batches: Iterable[Sequence[int] | torch.Tensor]) -> Iterator[T]:
@@ -390,6 +520,10 @@ class DetectionBatch:
     images: torch.Tensor
     targets: list[torch.Tensor]
 
+    def pin_memory(self) -> DetectionBatch:
+        """The batch in page-locked memory (what a ``pin_memory`` loader calls)."""
+        return DetectionBatch(self.idx, self.images.pin_memory(), self.targets)
+
 
 class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
     """Letterboxed images (read on demand) and their boxes (in memory).
@@ -415,11 +549,13 @@ class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
         input_hw: tuple[int, int],
         cache_mb: float = 0,
         cache_items: int | None = None,
+        shared: bool = False,
     ) -> None:
         self.paths, self.targets, self.keys = paths, targets, keys
         self.scales, self.classes, self.input_hw = scales, classes, input_hw
-        self.cache_mb, self.cache_items = cache_mb, cache_items
-        self.cache: LruCache[torch.Tensor] = _cache(cache_mb, cache_items)
+        self.cache_mb, self.cache_items, self.shared = cache_mb, cache_items, shared
+        layout: Layout = (((3, *input_hw), np.dtype(np.uint8)),)
+        self.cache = sample_cache(len(keys), layout, cache_mb, cache_items, shared)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -431,7 +567,8 @@ class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
             im, _ = letterbox(load_rgb(self.paths[i]), self.input_hw)
             return torch.from_numpy(np.ascontiguousarray(im.transpose(2, 0, 1)))
 
-        return self.cache.get(i, read)
+        image: torch.Tensor = self.cache.get(i, read)
+        return image
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         return self.image(i), self.targets[i]
@@ -440,7 +577,7 @@ class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
         """The first ``n`` images (smoke tests)."""
         return DetectionSet(
             self.paths[:n], self.targets[:n], self.keys[:n], self.scales[:n], self.classes,
-            self.input_hw, self.cache_mb, self.cache_items,
+            self.input_hw, self.cache_mb, self.cache_items, self.shared,
         )  # fmt: skip
 
     @staticmethod
@@ -463,11 +600,13 @@ def load_detection_set(
     progress: bool = True,
     cache_mb: float = 0,
     cache_items: int | None = None,
+    shared: bool = False,
 ) -> DetectionSet:
     """The index of the images of ``scene_ids`` with their ``bbox_visib`` boxes (scaled to the
     letterboxed input; image sizes come from the file headers). ``progress`` is accepted for
     compatibility: nothing is decoded here. ``cache_mb`` (MiB) and ``cache_items`` bound the
-    set's :class:`LruCache` of decoded images (0 MiB: none)."""
+    set's cache of decoded images (0 MiB: none): a :class:`SlotCache` shared by the loader
+    processes with ``shared``, else each process's :class:`LruCache`."""
     del progress
     per_image = list_instances(dataset, scene_ids, classes, min_visib)
     keys = list(per_image)
@@ -483,7 +622,7 @@ def load_detection_set(
         targets.append(torch.tensor(rows, dtype=torch.float32).reshape(-1, 5))
     hw = (int(input_hw[0]), int(input_hw[1]))
     return DetectionSet(
-        paths, targets, keys, np.array(scales), tuple(classes), hw, cache_mb, cache_items
+        paths, targets, keys, np.array(scales), tuple(classes), hw, cache_mb, cache_items, shared
     )
 
 
@@ -517,6 +656,13 @@ class PoseBatch:
     t: torch.Tensor
     bbox: torch.Tensor
     image_hw: torch.Tensor
+
+    def pin_memory(self) -> PoseBatch:
+        """The batch with its images in page-locked memory (a ``pin_memory`` loader's)."""
+        return replace(
+            self, rgb=self.rgb.pin_memory(), mask=self.mask.pin_memory(),
+            xyz=self.xyz.pin_memory(),
+        )  # fmt: skip
 
 
 def object_coordinates(
@@ -573,10 +719,17 @@ class PoseSet(Dataset[PoseSample]):
         context: int = 256,
         cache_mb: float = 0,
         cache_items: int | None = None,
+        shared: bool = False,
     ) -> None:
         self.dataset, self.records, self.context = dataset, records, context
-        self.cache_mb, self.cache_items = cache_mb, cache_items
-        self.cache: LruCache[PoseSample] = _cache(cache_mb, cache_items)
+        self.cache_mb, self.cache_items, self.shared = cache_mb, cache_items, shared
+        C = context
+        layout: Layout = (
+            ((3, C, C), np.dtype(np.uint8)),
+            ((C, C), np.dtype(np.bool_)),
+            ((3, C, C), np.dtype(np.float16)),
+        )
+        self.cache = sample_cache(len(records), layout, cache_mb, cache_items, shared)
 
         def f32(a: Any) -> torch.Tensor:
             return torch.from_numpy(np.asarray(a, dtype=np.float32).copy())
@@ -594,7 +747,8 @@ class PoseSet(Dataset[PoseSample]):
         return len(self.records)
 
     def __getitem__(self, i: int) -> PoseSample:
-        return self.cache.get(i, lambda: self._read(i))
+        sample: PoseSample = self.cache.get(i, lambda: self._read(i))
+        return sample
 
     def _read(self, i: int) -> PoseSample:
         r, C = self.records[i], self.context
@@ -632,8 +786,9 @@ class PoseSet(Dataset[PoseSample]):
         """The first ``n`` instances (smoke tests)."""
         hw = [(int(h), int(w)) for h, w in self.image_hw[:n].tolist()]
         return PoseSet(
-            self.dataset, self.records[:n], hw, self.context, self.cache_mb, self.cache_items
-        )
+            self.dataset, self.records[:n], hw, self.context, self.cache_mb, self.cache_items,
+            self.shared,
+        )  # fmt: skip
 
 
 def load_pose_set(
@@ -647,11 +802,13 @@ def load_pose_set(
     progress: bool = True,
     cache_mb: float = 0,
     cache_items: int | None = None,
+    shared: bool = False,
 ) -> PoseSet:
     """The index of every instance of ``obj_id`` with ``visib_fract >= min_visib`` and at
     least ``min_pixels`` visible pixels (``px_count_visib`` of scene_gt_info.json). Nothing is
     decoded here; ``progress`` is accepted for compatibility. ``cache_mb`` (MiB) and
-    ``cache_items`` bound the set's :class:`LruCache` of decoded samples (0 MiB: none).
+    ``cache_items`` bound the set's cache of decoded samples (0 MiB: none; ``shared``: a
+    :class:`SlotCache` shared by the loader processes, else each process's :class:`LruCache`).
 
     Raises:
         DatasetError: No such instance.
@@ -673,4 +830,4 @@ def load_pose_set(
             f"{list(scene_ids)[:5]}...",
             path=dataset.split_dir,
         )
-    return PoseSet(dataset, records, image_hw, context, cache_mb, cache_items)
+    return PoseSet(dataset, records, image_hw, context, cache_mb, cache_items, shared)

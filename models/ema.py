@@ -37,12 +37,17 @@ class ModelEMA:
         self.updates += 1
         d = self.current_decay()
         src = _unwrap(model).state_dict()
+        mine, theirs = [], []
         for name, value in self.ema.state_dict().items():
             new = src[name].detach()
             if value.dtype.is_floating_point:
-                value.mul_(d).add_(new.to(value.dtype), alpha=1 - d)
+                mine.append(value)
+                theirs.append(new.to(value.dtype))
             else:
                 value.copy_(new)
+        if mine:  # one fused kernel per operation over all tensors, not two per tensor
+            torch._foreach_mul_(mine, d)
+            torch._foreach_add_(mine, theirs, alpha=1 - d)
 
     def state_dict(self) -> dict[str, Any]:
         """The averaged weights plus the update count and hyper-parameters."""

@@ -200,20 +200,114 @@ def augment_one(image: Tensor, cfg: PhotometricConfig, gen: torch.Generator) -> 
     return out
 
 
+#: Uniform draws per sample, in :func:`augment_one`'s order: blur coin, sigma, noise coin,
+#: std, colour coin, brightness, contrast, three channel gains, gamma coin, gamma, JPEG coin,
+#: quality.
+_DRAWS = 14
+
+
 def augment_batch(images: Tensor, cfg: PhotometricConfig, seeds: Sequence[int] | Tensor) -> Tensor:
     """(B, 3, H, W) images in [0, 1], each augmented with its own generator seeded by
     ``seeds[i]`` (see :func:`sample_seed`); a new tensor, same device and dtype. With no
-    operation active the images are returned unchanged (the same tensor)."""
+    operation active the images are returned unchanged (the same tensor).
+
+    What :func:`augment_one` does to each image, with the same draws, run on the whole batch
+    on its device (the draws, and the JPEG round trips, stay on the CPU): equal to it up to
+    float rounding."""
     if not cfg.active:
         return images
     seeds = [int(s) for s in seeds]
     if len(seeds) != images.shape[0]:
         raise ValueError(f"{images.shape[0]} images but {len(seeds)} seeds")
-    out = [
-        augment_one(img, cfg, torch.Generator().manual_seed(s))
-        for img, s in zip(images, seeds, strict=False)
-    ]
-    return torch.stack(out)
+    with torch.autocast(images.device.type, enabled=False):  # the images' dtype throughout
+        return _augment(images, cfg, seeds)
+
+
+def _augment(images: Tensor, cfg: PhotometricConfig, seeds: list[int]) -> Tensor:
+    """:func:`augment_batch` of an active ``cfg``."""
+    u, fields = _batch_draws(cfg, seeds, tuple(images.shape[1:]))
+    v = _parameters(cfg, u)
+    out = images.clone()
+    fire = {k: torch.nonzero(u[:, c] < p).flatten() for k, c, p in (
+        ("blur", 0, cfg.blur_p), ("noise", 2, cfg.noise_p), ("colour", 4, cfg.colour_p),
+        ("gamma", 10, cfg.gamma_p), ("jpeg", 12, cfg.jpeg_p))}  # fmt: skip
+    dev, dt = images.device, images.dtype
+    if len(sel := fire["blur"]):
+        out[sel] = _blur_batch(out[sel], v["sigma"][sel])
+    if len(sel := fire["noise"]):
+        field = torch.stack([fields[int(k)] for k in sel]).to(dev, dt)
+        out[sel] = (out[sel] + v["std"][sel].to(dev, dt).view(-1, 1, 1, 1) * field).clamp(0, 1)
+    if len(sel := fire["colour"]):
+        x = out[sel]
+        mean = x.mean((1, 2, 3), keepdim=True)
+        c, b = (v[n][sel].to(dev, dt).view(-1, 1, 1, 1) for n in ("contrast", "brightness"))
+        gain = v["gains"][sel].to(dev, dt).view(-1, 3, 1, 1)
+        out[sel] = (((x - mean) * c + mean + b) * gain).clamp(0, 1)
+    if len(sel := fire["gamma"]):
+        out[sel] = out[sel].clamp(0, 1) ** v["gamma"][sel].to(dev, dt).view(-1, 1, 1, 1)
+    for k in fire["jpeg"].tolist():  # no JPEG codec in torch: OpenCV, per image
+        out[k] = jpeg_round_trip(out[k], int(v["quality"][k]))
+    return out
+
+
+def _batch_draws(
+    cfg: PhotometricConfig, seeds: list[int], shape: tuple[int, ...]
+) -> tuple[Tensor, dict[int, Tensor]]:
+    """(B, 14) uniform draws of each sample's generator and, where the noise fires, its
+    noise field (the next draws of that generator, as :func:`augment_one` makes them)."""
+    u = torch.empty(len(seeds), _DRAWS, dtype=torch.float32)
+    fields: dict[int, Tensor] = {}
+    for k, s in enumerate(seeds):
+        gen = torch.Generator().manual_seed(s)
+        u[k] = torch.rand(_DRAWS, generator=gen)  # the same stream as one draw at a time
+        if float(u[k, 2]) < cfg.noise_p:
+            fields[k] = torch.randn(shape, generator=gen, dtype=torch.float32)
+    return u, fields
+
+
+def _parameters(cfg: PhotometricConfig, u: Tensor) -> dict[str, Tensor]:
+    """Each sample's strengths from its draws ``u`` (B, 14), in float64 as :func:`_u`."""
+    d = u.double()
+
+    def lerp(col: int, lo: float, hi: float) -> Tensor:
+        return lo + (hi - lo) * d[:, col]
+
+    q_lo, q_hi = cfg.jpeg_quality
+    gains = torch.stack(
+        [lerp(c, 1 - cfg.channel_gain, 1 + cfg.channel_gain) for c in (7, 8, 9)], dim=1
+    )
+    log_gamma = lerp(11, math.log(cfg.gamma[0]), math.log(cfg.gamma[1]))
+    return {
+        "sigma": lerp(1, *cfg.blur_sigma),
+        "std": lerp(3, *cfg.noise_std),
+        "brightness": lerp(5, -cfg.brightness, cfg.brightness),
+        "contrast": lerp(6, *cfg.contrast),
+        "gains": gains,
+        "gamma": torch.exp(log_gamma),
+        "quality": (q_lo + (d[:, 13] * (q_hi - q_lo + 1)).floor()).clamp(max=q_hi),
+    }
+
+
+def _blur_batch(images: Tensor, sigma: Tensor) -> Tensor:
+    """(n, 3, H, W) images, each blurred as :func:`gaussian_blur` with its own ``sigma``
+    (n,): one grouped convolution per axis, the kernels zero-padded to the widest."""
+    n, C, H, W = images.shape
+    r = torch.ceil(3 * sigma).clamp(min=1).clamp(max=min(H, W) - 1)
+    r = torch.where(sigma > 0, r, torch.zeros_like(r)).long()
+    R = int(r.max())
+    if R < 1:
+        return images
+    x = torch.arange(-R, R + 1, dtype=images.dtype, device=images.device)
+    s = sigma.to(images.device, images.dtype).clamp(min=1e-12)[:, None]
+    k = torch.exp(-0.5 * (x[None] / s) ** 2) * (x[None].abs() <= r.to(images.device)[:, None])
+    k = k / k.sum(1, keepdim=True)
+    k = torch.where(r.to(images.device)[:, None] > 0, k, (x[None] == 0).to(k))  # sigma <= 0
+    kc = k.repeat_interleave(C, dim=0)  # (n*C, 2R+1)
+    img = F.pad(images.reshape(1, n * C, H, W), (R, R, 0, 0), mode="reflect")
+    img = F.conv2d(img, kc.view(n * C, 1, 1, -1), groups=n * C)
+    img = F.pad(img, (0, 0, R, R), mode="reflect")
+    img = F.conv2d(img, kc.view(n * C, 1, -1, 1), groups=n * C)
+    return img.reshape(n, C, H, W)
 
 
 def batch_seeds(seed: int, epoch: int, indices: Sequence[int] | Tensor) -> list[int]:

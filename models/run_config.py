@@ -1,10 +1,11 @@
 """A training run's full configuration: read from a YAML/JSON file, resolved, written back.
 
-One file configures one run of ``bopsurg train detector|pose --config FILE``::
+One file configures one run of ``bopsurg train detector|pose|seg|ends --config FILE``::
 
     preset: cpu          # the model preset the model section starts from
     seed: 0
-    pose:                # PoseConfig fields (a detector run: 'detector:' with DetectorConfig's)
+    pose:                # PoseConfig fields (a detector run: 'detector:' with DetectorConfig's;
+                         # 'seg:' SegConfig's, 'ends:' EndConfig's)
       z_unit_mm: 100
       roi_in: 160
     recipe:              # PoseRecipe / DetectorRecipe fields: epochs, lr, batch_size, hsv ...
@@ -18,7 +19,8 @@ One file configures one run of ``bopsurg train detector|pose --config FILE``::
       cache_mb: 4096     # decoded samples kept in memory, MiB per set and process (0: none)
 
 Every section and key is optional (defaults: the preset's). Unknown keys are errors naming the
-file and the key. Command-line flags override the file. The resolved configuration (every
+file and the key. Command-line flags override the file, and ``--set SECTION.KEY=VALUE``
+(:func:`apply_overrides`) any single field. The resolved configuration (every
 field, explicit) is written into the run folder as ``config.yaml``: it is a valid ``--config``
 file that reproduces the run.
 """
@@ -38,7 +40,9 @@ import yaml
 from bopsurg.errors import BopsurgError
 from bopsurg.models.photometric import PhotometricConfig
 
-SECTIONS = ("preset", "seed", "detector", "pose", "recipe", "augment", "loader")
+#: The model sections: each names the model a run trains (one per run).
+MODEL_SECTIONS = ("detector", "pose", "seg", "ends")
+SECTIONS = ("preset", "seed", *MODEL_SECTIONS, "recipe", "augment", "loader")
 D = TypeVar("D")
 
 
@@ -46,12 +50,13 @@ D = TypeVar("D")
 class LoaderConfig:
     """How training samples are read (not part of the result: a resume may change it).
 
-    Each set (training, validation) caches its decoded samples, least recently used evicted
-    first, within ``cache_mb`` in every process that reads it: the training process, and
-    each of the ``num_workers`` processes for the training set (so up to
-    ``(num_workers + 1) * cache_mb`` in all). A sample costs about 0.25 MB (detector,
-    320x256 input) or 0.65 MB (pose, 256-px context crop), so the default holds about 6,000
-    pose instances: a set that fits is decoded once, a larger one streams from disk.
+    Each set (training, validation) caches its decoded samples within ``cache_mb``: with
+    ``shared_cache`` (detector and pose sets) in one file all its reading processes share,
+    the first samples that fit; otherwise in every process that reads it (the training
+    process and each of the ``num_workers`` processes, so up to ``(num_workers + 1) *
+    cache_mb`` in all), least recently used evicted first. A sample costs about 0.25 MB
+    (detector, 320x256 input) or 0.65 MB (pose, 256-px context crop), so the default holds
+    about 6,000 pose instances: a set that fits is decoded once, a larger one streams.
 
     Attributes:
         num_workers: Background loader processes that read batches ahead (0: read in the
@@ -61,11 +66,17 @@ class LoaderConfig:
         cache_items: At most this many cached samples per set and process as well (None:
             no count limit; 0: no cache). Files written before ``cache_mb`` existed hold
             ``cache_items: 0``, and keep meaning no cache.
+        shared_cache: Detector and pose sets keep their decoded samples (at the training
+            resolution) in one memory-mapped file that the training process and every
+            worker share (:class:`~bopsurg.models.data.SlotCache`; ``/dev/shm`` where it
+            has room): each sample is decoded once in all, and ``cache_mb`` is the budget
+            per set in all, not per process. False: each process its own LRU cache.
     """
 
     num_workers: int = 0
     cache_mb: int = 4096
     cache_items: int | None = None
+    shared_cache: bool = True
 
     def __post_init__(self) -> None:
         if self.num_workers < 0 or self.cache_mb < 0:
@@ -173,18 +184,60 @@ def build(cls: type[D], base: dict[str, Any], values: Any, where: str) -> D:
         raise BopsurgError(f"{where}: {err}") from err
 
 
-def augment_config(values: Any, where: str) -> PhotometricConfig:
-    """The ``augment`` section: an optional ``preset`` then field overrides."""
+def augment_config(
+    values: Any, where: str, default: PhotometricConfig | None = None
+) -> PhotometricConfig:
+    """The ``augment`` section: an optional ``preset`` then field overrides of it, or of
+    ``default`` (the trainer's own, ``off`` when None) without one."""
+    default = default or PhotometricConfig()
     if values is None:
-        return PhotometricConfig()
+        return default
     if not isinstance(values, dict):
         raise BopsurgError(f"{where}: expected a mapping of fields, got {values!r}")
     values = dict(values)
     try:
-        base = PhotometricConfig.preset_values(str(values.pop("preset", "off")))
+        base = (
+            PhotometricConfig.preset_values(str(values.pop("preset")))
+            if "preset" in values
+            else dataclasses.asdict(default)
+        )
     except ValueError as err:
         raise BopsurgError(f"{where}.preset: {err}") from err
     return build(PhotometricConfig, base, values, where)
+
+
+def apply_overrides(data: dict[str, Any], items: list[str], where: str = "--set") -> dict[str, Any]:
+    """``data`` (a ``--config`` mapping) with each ``SECTION.KEY=VALUE`` (or ``preset=`` /
+    ``seed=``) of ``items`` set; VALUE is read as YAML (``0.5``, ``true``, ``[1, 2]``).
+
+    Raises:
+        BopsurgError: An item without ``=``, an unknown section, or a section that is not a
+            mapping (keys are checked later, with the section's fields).
+    """
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items()}
+    for item in items:
+        key, eq, text = item.partition("=")
+        if not eq or not key:
+            raise BopsurgError(f"{where} {item!r}: expected SECTION.KEY=VALUE")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise BopsurgError(f"{where} {item!r}: the value is not valid YAML") from None
+        section, dot, field_name = key.partition(".")
+        if section not in SECTIONS:
+            raise BopsurgError(
+                f"{where} {item!r}: unknown section {section!r} (sections: {', '.join(SECTIONS)})"
+            )
+        if not dot:
+            out[section] = value
+            continue
+        current = out.get(section)
+        if current is None:
+            current = out[section] = {}
+        if not isinstance(current, dict):
+            raise BopsurgError(f"{where} {item!r}: {section} is not a section of fields")
+        current[field_name] = value
+    return out
 
 
 def to_plain(obj: Any) -> Any:

@@ -23,6 +23,7 @@ from typing import cast
 import numpy as np
 import torch
 
+from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError
 from bopsurg.models import training
 from bopsurg.models.data import BatchReader, DetectionBatch, DetectionSet, load_detection_set
@@ -60,8 +61,18 @@ class DetectorRecipe:
     #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
+    #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
+    #: :attr:`~bopsurg.models.training.Schedule.precision`).
+    precision: str = "fp32"
+    #: Steps per epoch; 0: one pass over the training samples. More than a pass draws
+    #: from consecutive shuffles (a small split trained for a fixed number of steps).
+    steps_per_epoch: int = 0
 
     def __post_init__(self) -> None:
+        if self.steps_per_epoch < 0:
+            raise ValueError(f"steps_per_epoch must be >= 0, got {self.steps_per_epoch}")
+        if self.precision not in training.PRECISIONS:
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if not 0.0 <= self.hue_whole <= 1.0:
             raise ValueError(f"hue_whole is a share of the images, in [0, 1], got {self.hue_whole}")
 
@@ -69,7 +80,7 @@ class DetectorRecipe:
         """What the epoch loop reads; the cosine starts right after the warm-up (YOLOX)."""
         return training.Schedule(
             self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
-            0.0, self.val_every,
+            0.0, self.val_every, self.steps_per_epoch, self.precision,
         )  # fmt: skip
 
 
@@ -143,44 +154,26 @@ def train_detector(
     loader = loader or LoaderConfig()
     dev = training.resolve_device(device)
     splits = training.open_splits(dataset, split, val_split)
-    ds = splits.train
-    classes = tuple(obj_ids) if obj_ids else tuple(ds.obj_ids[:1])
-    unknown = sorted(set(classes) - set(ds.obj_ids))
-    if unknown:
-        raise BopsurgError(f"--obj-ids: {unknown} not among the dataset's objects {ds.obj_ids}")
+    classes = _classes(splits.train, obj_ids)
     preset_cfg = DetectorConfig.preset(preset, num_classes=len(classes))
-    cfg = preset_cfg if config is None else config
-    if cfg.num_classes != len(classes):
-        raise BopsurgError(
-            f"the detector config has num_classes {cfg.num_classes} but {len(classes)} "
-            f"object(s) are detected ({list(classes)}); set num_classes by --obj-ids"
-        )
+    cfg = _checked(preset_cfg if config is None else config, classes)
     settings = training.RunSettings(
         "detector", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
         {"val_split": val_split, "max_images": max_images, "classes": list(classes)},
         cfg.to_dict(),
     )  # fmt: skip
-    legacy = {
-        "model": preset_cfg.to_dict(),
-        "recipe": {
-            "augment": asdict(PhotometricConfig()),
-            "init": "",
-            "hsv": [0.015, 0.7, 0.4],
-            "hue_whole": 0.0,
-        },
-    }
+    legacy = {"model": preset_cfg.to_dict(), "recipe": LEGACY_RECIPE}
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
     write_config(out, resolved("detector", preset, seed, cfg, recipe, loader))
-    train = load_detection_set(
-        ds, splits.train_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
-        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+    train, val = (
+        load_detection_set(
+            ds, ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
+            cache_mb=loader.cache_mb, cache_items=loader.cache_items, shared=loader.shared_cache,
+        )
+        for ds, ids in ((splits.train, splits.train_ids), (splits.val, splits.val_ids))
     )  # fmt: skip
     if max_images is not None:
         train = train.head(max_images)
-    val = load_detection_set(
-        splits.val, splits.val_ids, cfg.input_hw, classes, min_visib=recipe.min_visib,
-        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
-    )  # fmt: skip
     log.info("detector: %d train images, %d validation images", len(train), len(val))
     model = YoloxDetector(cfg)
     meta = {"classes": list(classes)}
@@ -190,13 +183,48 @@ def train_detector(
         )
     model = model.to(dev)
     export = training.Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
-    step = _step_fn(model, recipe, dev, seed)
-    return training.fit(
-        model, run, state, recipe.schedule(), n_train=len(train), step=step,
+    path: Path = training.fit(
+        model, run, state, recipe.schedule(), n_train=len(train),
+        step=_step_fn(model, recipe, dev, seed),
         validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev),
         export=export, device=dev, progress=progress,
-        load=BatchReader(train, train.collate, loader.num_workers),
+        load=BatchReader(train, train.collate, loader.num_workers, dev.type == "cuda"),
     )  # fmt: skip
+    return path
+
+
+#: Recipe settings that runs written by an older bopsurg lack, at the value they had then.
+LEGACY_RECIPE = {
+    "augment": asdict(PhotometricConfig()),
+    "precision": "fp32",
+    "steps_per_epoch": 0,
+    "init": "",
+    "hsv": [0.015, 0.7, 0.4],
+    "hue_whole": 0.0,
+}
+
+
+def _checked(cfg: DetectorConfig, classes: tuple[int, ...]) -> DetectorConfig:
+    """``cfg``, checked to have a class per detected object."""
+    if cfg.num_classes != len(classes):
+        raise BopsurgError(
+            f"the detector config has num_classes {cfg.num_classes} but {len(classes)} "
+            f"object(s) are detected ({list(classes)}); set num_classes by --obj-ids"
+        )
+    return cfg
+
+
+def _classes(ds: BopDataset, obj_ids: Sequence[int] | None) -> tuple[int, ...]:
+    """The detected objects: ``obj_ids``, or the dataset's first object.
+
+    Raises:
+        BopsurgError: An object the dataset does not have.
+    """
+    classes = tuple(obj_ids) if obj_ids else tuple(ds.obj_ids[:1])
+    unknown = sorted(set(classes) - set(ds.obj_ids))
+    if unknown:
+        raise BopsurgError(f"--obj-ids: {unknown} not among the dataset's objects {ds.obj_ids}")
+    return classes
 
 
 def _step_fn(
@@ -207,14 +235,19 @@ def _step_fn(
     l1_from = math.ceil(recipe.epochs * (1 - recipe.l1_fraction))
 
     def step(batch: DetectionBatch, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
-        images = batch.images.to(dev).float() / 255
-        targets = [t.to(dev) for t in batch.targets]
+        images = batch.images.to(dev, non_blocking=True).float() / 255
+        counts = [len(t) for t in batch.targets]  # one copy to the device, not one per image
+        flat = torch.cat(batch.targets).to(dev, non_blocking=True)
+        targets = list(torch.split(flat, counts))
         images = hsv_jitter(images, gen, *recipe.hsv, whole=recipe.hue_whole)
         images, targets = random_flip(images, targets, gen, p=recipe.flip)
         images, targets = random_affine(
             images, targets, gen, scale=recipe.scale, translate=recipe.translate
         )
         images = augment_batch(images, recipe.augment, batch_seeds(seed, epoch, batch.idx))
-        return model.loss(model(images), targets, use_l1=epoch >= l1_from)
+        losses: dict[str, torch.Tensor] = model.loss(
+            model(images), targets, use_l1=epoch >= l1_from
+        )
+        return losses
 
     return step

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -89,8 +89,18 @@ class PoseRecipe:
     #: Exported checkpoint (``NAME.pt``, same kind and config) the network starts from, to
     #: fine-tune it on new data; "" = random initialisation.
     init: str = ""
+    #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
+    #: :attr:`~bopsurg.models.training.Schedule.precision`).
+    precision: str = "fp32"
+    #: Steps per epoch; 0: one pass over the training samples. More than a pass draws
+    #: from consecutive shuffles (a small split trained for a fixed number of steps).
+    steps_per_epoch: int = 0
 
     def __post_init__(self) -> None:
+        if self.steps_per_epoch < 0:
+            raise ValueError(f"steps_per_epoch must be >= 0, got {self.steps_per_epoch}")
+        if self.precision not in training.PRECISIONS:
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         for name in ("mirror", "hue_whole", "roll"):
             share = getattr(self, name)
             if not 0.0 <= share <= 1.0:
@@ -102,7 +112,7 @@ class PoseRecipe:
         """What the epoch loop reads; the cosine starts at ``anneal_from`` (GDR-Net)."""
         return training.Schedule(
             self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
-            self.anneal_from, self.val_every,
+            self.anneal_from, self.val_every, self.steps_per_epoch, self.precision,
         )  # fmt: skip
 
 
@@ -188,19 +198,20 @@ def roi_batch(
     a, c0 = data.ctx[:, 0].to(device), data.ctx[:, 1:].to(device)
     C = data.rgb.shape[-1]
     c_centre, c_side = (centre - c0) * a[:, None] + C / 2, side * a  # in the context crop
-    rgb = data.rgb.to(device).float() / 255
+    rgb = data.rgb.to(device, non_blocking=True).float() / 255
     roi_img = crop(rgb, c_centre, c_side, cfg.roi_in, "bilinear")
     if gen is not None:
         roi_img = hsv_jitter(roi_img, gen, *hsv, whole=hue_whole)
         if augment is not None and seeds is not None:
             roi_img = augment_batch(roi_img, augment, seeds)
-    mask_full = data.mask[:, None].to(device).float()
+    mask_full = data.mask[:, None].to(device, non_blocking=True).float()
     mask = crop(mask_full, c_centre, c_side, cfg.roi_out, "nearest")
     soft = None  # the covered fraction of each map cell (4×4 nearest samples), for BCE only
     if cfg.mask_loss == "bce":
         soft = crop(mask_full, c_centre, c_side, 4 * cfg.roi_out, "nearest")
         soft = torch.nn.functional.avg_pool2d(soft, 4)
-    xyz = crop(data.xyz.to(device).float(), c_centre, c_side, cfg.roi_out, "nearest")
+    xyz = data.xyz.to(device, non_blocking=True).float()
+    xyz = crop(xyz, c_centre, c_side, cfg.roi_out, "nearest")
     fg = mask[:, 0] > 0.5
     xyz_hw = xyz.permute(0, 2, 3, 1)
     region = xyz_to_region(xyz_hw, fg, geo.fps.to(device))
@@ -291,14 +302,11 @@ def train_pose(
         restart: Discard a previous run in ``out``.
         progress: Show progress bars.
         max_instances: Use only the first N training instances (smoke tests).
-        config: The network's config (default: the preset's). A symmetric object is set by
-            ``recipe.symmetric`` or ``config.symmetric`` (either sets both).
+        config: The network's config (default: the preset's); ``recipe.symmetric`` or
+            ``config.symmetric`` sets both.
         loader: How instances are read (workers, cache); does not change the result.
     """
-    from dataclasses import replace
-
-    recipe = recipe or PoseRecipe()
-    loader = loader or LoaderConfig()
+    recipe, loader = recipe or PoseRecipe(), loader or LoaderConfig()
     dev = training.resolve_device(device)
     preset_cfg = PoseConfig.preset(preset)
     cfg = preset_cfg if config is None else config
@@ -313,50 +321,64 @@ def train_pose(
         cfg.to_dict(),
     )  # fmt: skip
     legacy_cfg = replace(preset_cfg, symmetric=cfg.symmetric)  # runs before config files
-    legacy = {
-        "model": legacy_cfg.to_dict(),
-        "recipe": {
-            "augment": asdict(PhotometricConfig()),
-            "init": "",
-            "mirror": 0.0,
-            "mirror_splits": [],
-            "hue_whole": 0.0,
-            "roll": 0.0,
-            "roll_deg": 180.0,
-        },
-    }
+    legacy = {"model": legacy_cfg.to_dict(), "recipe": LEGACY_RECIPE}
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
     write_config(out, resolved("pose", preset, seed, cfg, recipe, loader))
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
-    train = load_pose_set(
-        ds, splits.train_ids, obj_id, min_visib=recipe.min_visib,
-        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
+    train, val = (
+        load_pose_set(
+            split_ds, ids, obj_id, min_visib=min_visib,
+            cache_mb=loader.cache_mb, cache_items=loader.cache_items, shared=loader.shared_cache,
+        )
+        for split_ds, ids, min_visib in (
+            (ds, splits.train_ids, recipe.min_visib), (splits.val, splits.val_ids, 0.3)
+        )
     )  # fmt: skip
     if max_instances is not None:
         train = train.head(max_instances)
-    val = load_pose_set(
-        splits.val, splits.val_ids, obj_id, min_visib=0.3,
-        cache_mb=loader.cache_mb, cache_items=loader.cache_items,
-    )  # fmt: skip
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
-
-    model = GdrPoseNet(cfg)
-    if recipe.init and state is None:
-        training.init_weights(
-            model, recipe.init, "pose", cfg.to_dict(), geo.to_meta(), TRAINING_ONLY
-        )
-    model = model.to(dev)
+    model = _network(cfg, recipe.init if state is None else "", geo).to(dev)
     export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
-    mirrorable = _mirrorable(train, ds, recipe.mirror_splits)
-    # the needle's symmetry through its plane, from its mesh (checked): what a mirror shows
-    reflection = object_reflection(ds, obj_id) if recipe.mirror > 0 else None
-    step = _step_fn(model, cfg, geo, recipe, dev, seed, mirrorable, reflection)
-    return training.fit(
+    step = _step_fn(model, cfg, geo, recipe, dev, seed, *_mirror(train, ds, obj_id, recipe))
+    path: Path = training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export,
         device=dev, progress=progress,
-        load=BatchReader(train, train.collate, loader.num_workers),
+        load=BatchReader(train, train.collate, loader.num_workers, dev.type == "cuda"),
     )  # fmt: skip
+    return path
+
+
+#: Recipe settings that runs written by an older bopsurg lack, at the value they had then.
+LEGACY_RECIPE = {
+    "augment": asdict(PhotometricConfig()),
+    "precision": "fp32",
+    "steps_per_epoch": 0,
+    "init": "",
+    "mirror": 0.0,
+    "mirror_splits": [],
+    "hue_whole": 0.0,
+    "roll": 0.0,
+    "roll_deg": 180.0,
+}
+
+
+def _network(cfg: PoseConfig, init: str, geo: ObjectGeometry) -> GdrPoseNet:
+    """A fresh pose head (seeded by the caller), or, with ``init``, that checkpoint's."""
+    model = GdrPoseNet(cfg)
+    if init:
+        training.init_weights(model, init, "pose", cfg.to_dict(), geo.to_meta(), TRAINING_ONLY)
+    return model
+
+
+def _mirror(
+    train: PoseSet, ds: BopDataset, obj_id: int, recipe: PoseRecipe
+) -> tuple[torch.Tensor | None, PlaneReflection | None]:
+    """Which samples may be mirrored (:func:`_mirrorable`) and the object's reflection (its
+    symmetry through its plane, from its mesh, checked: what a mirror shows; None without
+    ``recipe.mirror``)."""
+    reflection = object_reflection(ds, obj_id) if recipe.mirror > 0 else None
+    return _mirrorable(train, ds, recipe.mirror_splits), reflection
 
 
 def _mirrorable(
@@ -411,6 +433,8 @@ def _step_fn(
         roi_img, coord2d, target = roi_batch(
             batch, cfg, geo, dev, gen, recipe.hsv, recipe.augment, seeds, recipe.hue_whole
         )
-        return gdr_losses(model(roi_img, coord2d), target, points, cfg, syms)
+        out = {k: v.float() for k, v in model(roi_img, coord2d).items()}  # losses in fp32
+        losses: dict[str, torch.Tensor] = gdr_losses(out, target, points, cfg, syms)
+        return losses
 
     return step

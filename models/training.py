@@ -30,6 +30,7 @@ import json
 import logging
 import math
 import platform
+import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -69,18 +70,27 @@ def epoch_generator(seed: int, epoch: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1000 + epoch)
 
 
-def batches(n: int, batch_size: int, gen: torch.Generator, *, drop_last: bool = True) -> Iterator:
-    """Shuffled index batches over ``range(n)``."""
-    perm = torch.randperm(n, generator=gen)
-    stop = n - n % batch_size if drop_last and n >= batch_size else n
-    for i in range(0, stop, batch_size):
-        yield perm[i : i + batch_size]
-
-
-def warmup_cosine_lr(step: int, total: int, warmup: int, base: float) -> float:
-    """Linear warm-up over ``warmup`` steps times a cosine from ``base`` to 0 over ``total``
-    (the refinement trainers' schedule, :mod:`bopsurg.models.refine`)."""
-    return base * min(1.0, (step + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * step / total))
+def batches(
+    n: int,
+    batch_size: int,
+    gen: torch.Generator,
+    *,
+    drop_last: bool = True,
+    steps: int = 0,
+) -> Iterator[torch.Tensor]:
+    """Shuffled index batches over ``range(n)``: one pass (the last partial batch dropped
+    with ``drop_last``), or with ``steps > 0`` exactly that many full batches from shuffles
+    drawn one after the other (every sample once before any twice)."""
+    if steps <= 0:
+        perm = torch.randperm(n, generator=gen)
+        stop = n - n % batch_size if drop_last and n >= batch_size else n
+        for i in range(0, stop, batch_size):
+            yield perm[i : i + batch_size]
+        return
+    need = steps * batch_size
+    perm = torch.cat([torch.randperm(n, generator=gen) for _ in range(-(-need // n))])
+    for i in range(steps):
+        yield perm[i * batch_size : (i + 1) * batch_size]
 
 
 def flat_cosine_lr(step: int, total: int, warmup: int, anneal_from: float, base: float) -> float:
@@ -169,7 +179,7 @@ class RunFolder:
                     "use another --out or --restart"
                 )
         try:
-            state = load_tensors(self.state_path)
+            state: dict[str, Any] = load_tensors(self.state_path)
         except CheckpointError as err:
             raise BopsurgError(f"{err}; use --restart to start over") from err
         log.info("resuming %s after epoch %d", self.out, state["epoch"])
@@ -343,6 +353,10 @@ class Timer:
         return time.perf_counter() - self.start
 
 
+#: What :attr:`Schedule.precision` may be.
+PRECISIONS = ("fp32", "bf16")
+
+
 @dataclass(frozen=True)
 class Schedule:
     """The hyper-parameters the epoch loop reads from a trainer's recipe.
@@ -355,6 +369,10 @@ class Schedule:
         warmup_epochs: Quadratic warm-up length, epochs.
         anneal_from: Start of the cosine, a fraction of all steps (0: right after warm-up).
         val_every: Validation cadence, epochs (the last epoch is always validated).
+        steps_per_epoch: Steps of an epoch; 0: one pass over the training samples
+            (``n_train // batch_size``). Trainers whose data is drawn rather than passed
+            over (the needle segmenter and end classifier) count their run in steps; an
+            epoch is then the unit of validation, resuming and export.
     """
 
     epochs: int
@@ -364,6 +382,17 @@ class Schedule:
     warmup_epochs: float
     anneal_from: float
     val_every: int
+    steps_per_epoch: int = 0
+    precision: str = "fp32"
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got "
+                             f"{self.precision!r}")  # fmt: skip
+
+    def epoch_steps(self, n_train: int) -> int:
+        """Optimiser steps of one epoch over ``n_train`` samples."""
+        return self.steps_per_epoch or max(1, n_train // self.batch_size)
 
 
 #: One training step's losses: ``(batch, epoch generator, epoch) → {name: scalar}`` with a
@@ -438,42 +467,74 @@ def fit(
         progress: Show a progress bar per epoch.
         load: Reads the epoch's index batches (from disk); ``step`` then gets its batches.
     """
-    steps_per_epoch = max(1, n_train // schedule.batch_size)
-    total = schedule.epochs * steps_per_epoch
-    warmup = int(schedule.warmup_epochs * steps_per_epoch)
+    if device.type == "cuda":  # convolutions run NHWC on tensor cores
+        model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     p = _start(model, state, schedule)
     for epoch in range(p.start, schedule.epochs):
         gen = epoch_generator(run.settings.seed, epoch)
-        model.train()
-        sums: dict[str, float] = {}
         # the shuffle is drawn first, so a loader may read ahead of the augmentation draws
-        order = list(batches(n_train, schedule.batch_size, gen))
+        order = list(batches(n_train, schedule.batch_size, gen, steps=schedule.steps_per_epoch))
         bar = tqdm(
-            order if load is None else load(order), total=steps_per_epoch,
-            desc=f"{export.kind} {epoch + 1}/{schedule.epochs}", disable=not progress, leave=False,
+            order if load is None else load(order), total=len(order),
+            desc=f"{export.kind} {epoch + 1}/{schedule.epochs}", leave=False,
+            disable=not (progress and sys.stderr.isatty()),  # no bar in a log file
         )  # fmt: skip
-        for k, idx in enumerate(bar):
-            done = epoch * steps_per_epoch + k  # steps before this one
-            lr = flat_cosine_lr(done, total, warmup, schedule.anneal_from, schedule.lr)
-            for g in p.opt.param_groups:
-                g["lr"] = lr
-            losses = step(idx, gen, epoch)
-            p.opt.zero_grad(set_to_none=True)
-            losses["total"].backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            p.opt.step()
-            p.ema.update(model)
-            for name, v in losses.items():
-                sums[name] = sums.get(name, 0.0) + float(torch.as_tensor(v).detach())
-            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
-        record: dict[str, Any] = {"epoch": epoch, "lr": p.opt.param_groups[0]["lr"]}
-        record.update({f"loss_{n}": v / steps_per_epoch for n, v in sums.items()})
+        record: dict[str, Any] = {"epoch": epoch}
+        record.update(_train_epoch(model, p, schedule, n_train, bar, step, gen, epoch))
         if epoch == schedule.epochs - 1 or (epoch + 1) % schedule.val_every == 0:
             record.update({f"val_{n}": v for n, v in validate(p.ema.ema).items()})
         record["seconds"] = round(p.timer.seconds, 1)
         log.info("%s epoch %d: %s", export.kind, epoch + 1, format_record(record))
         _end_epoch(model, run, p, export, record, device)
     return export.path
+
+
+def _train_epoch(
+    model: nn.Module,
+    p: _Progress,
+    schedule: Schedule,
+    n_train: int,
+    bar: tqdm[Any],
+    step: StepFn,
+    gen: torch.Generator,
+    epoch: int,
+) -> dict[str, float]:
+    """The steps of one epoch over ``bar``'s batches: the last learning rate, the mean of
+    each loss (``loss_NAME``), and where the time went: ``samples_per_s`` and
+    ``data_wait``, the share of the epoch spent waiting for the loader's next batch."""
+    steps_per_epoch = schedule.epoch_steps(n_train)
+    total = schedule.epochs * steps_per_epoch
+    warmup = int(schedule.warmup_epochs * steps_per_epoch)
+    sums: dict[str, torch.Tensor] = {}
+    lr, waited, start = p.opt.param_groups[0]["lr"], 0.0, time.perf_counter()
+    device = next(model.parameters()).device
+    autocast = torch.autocast(device.type, torch.bfloat16, enabled=schedule.precision == "bf16")
+    model.train()
+    batches_in = iter(bar)
+    for k in range(len(bar)):
+        t = time.perf_counter()
+        batch = next(batches_in)
+        waited += time.perf_counter() - t
+        lr = flat_cosine_lr(epoch * steps_per_epoch + k, total, warmup, schedule.anneal_from,
+                            schedule.lr)  # fmt: skip
+        for g in p.opt.param_groups:
+            g["lr"] = lr
+        with autocast:
+            losses = step(batch, gen, epoch)
+        p.opt.zero_grad(set_to_none=True)
+        losses["total"].backward()  # type: ignore[no-untyped-call]
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        p.opt.step()
+        p.ema.update(model)
+        for name, v in losses.items():  # summed where they are: no wait for the device
+            sums[name] = sums.get(name, 0) + torch.as_tensor(v).detach().float()
+        if not bar.disable:
+            bar.set_postfix(loss=f"{losses['total'].item():.3f}")
+    means = {f"loss_{n}": float(v) / steps_per_epoch for n, v in sums.items()}
+    seconds = time.perf_counter() - start  # after float(): the device has caught up
+    speed = {"samples_per_s": len(bar) * schedule.batch_size / seconds,
+             "data_wait": waited / seconds}  # fmt: skip
+    return {"lr": float(lr), **means, **speed}
 
 
 def _start(model: nn.Module, state: dict[str, Any] | None, schedule: Schedule) -> _Progress:

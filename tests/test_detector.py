@@ -16,7 +16,12 @@ from bopsurg.models.detector import (  # noqa: E402
     letterbox_params,
     nms,
 )
-from bopsurg.models.detector.assign import dynamic_k_matching, simota_assign  # noqa: E402
+from bopsurg.models.detector.anchors import make_anchors  # noqa: E402
+from bopsurg.models.detector.assign import (  # noqa: E402
+    dynamic_k_matching,
+    simota_assign,
+    simota_assign_batch,
+)
 from bopsurg.models.detector.augment import (  # noqa: E402
     hsv_jitter,
     hsv_to_rgb,
@@ -435,3 +440,37 @@ def test_forward_loss_detect_and_augment_on_cuda():
     assert all(d.device.type == "cuda" for d in dets)
     ema = ModelEMA(model)
     ema.update(model)
+
+
+def test_the_batched_simota_assigns_each_image_as_the_per_image_one():
+    """64 images of 0-3 GTs (padded), random predictions: the batched assignment is the
+    per-image one, image by image (positives, matched GT, IoU)."""
+    grid, strides = make_anchors((256, 320), (8, 16, 32), torch.device("cpu"))
+    centers = (grid + 0.5) * strides[:, None]
+    g = torch.Generator().manual_seed(0)
+    B, A, C = 64, len(grid), 3
+    size = torch.tensor([320.0, 256.0])
+    pred = torch.cat(
+        [torch.rand(B, A, 2, generator=g) * size, 5 + 60 * torch.rand(B, A, 2, generator=g)], -1
+    )
+    obj, cls = torch.randn(B, A, generator=g), torch.randn(B, A, C, generator=g)
+    n = torch.randint(0, 4, (B,), generator=g)
+    G = int(n.max())
+    gt = torch.cat(
+        [torch.rand(B, G, 2, generator=g) * size, 4 + 80 * torch.rand(B, G, 2, generator=g)], -1
+    )
+    gt_cls = torch.randint(0, C, (B, G), generator=g)
+    batch = simota_assign_batch(
+        pred, obj, cls, centers, strides, gt, gt_cls, torch.arange(G) < n[:, None]
+    )
+    assert int(batch.fg_mask.sum()) > 0
+    for b in range(B):
+        one = simota_assign(pred[b], obj[b], cls[b], centers, strides, gt[b, : n[b]],
+                            gt_cls[b, : n[b]])  # fmt: skip
+        assert torch.equal(one.fg_mask, batch.fg_mask[b])
+        assert torch.equal(one.gt_index, batch.gt_index[b])
+        torch.testing.assert_close(one.iou, batch.iou[b])
+    none = simota_assign_batch(
+        pred, obj, cls, centers, strides, gt[:, :0], gt_cls[:, :0], torch.zeros(B, 0, dtype=bool)
+    )
+    assert not none.fg_mask.any()

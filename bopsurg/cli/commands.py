@@ -94,7 +94,7 @@ CORE: tuple[Command, ...] = (
 PLUGIN_HELP: dict[str, str] = {
     "record": "synthesise a suturing episode (two dVRK PSMs and a needle) into a rosbag",
     "generate": "replay bags from randomised endoscope viewpoints and lighting into a BOP dataset",
-    "train": "train the built-in detector or pose head on a BOP dataset (CPU or GPU)",
+    "train": "train the built-in detector, pose head, needle segmenter or end classifier",
     "inspect": "show a bag's topics, the streams generate finds in it, and the kinematics check",
 }
 

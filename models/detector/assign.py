@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .boxes import pairwise_iou_cxcywh
+from .boxes import box_area, cxcywh_to_xyxy, pairwise_iou_cxcywh
 
 CENTER_RADIUS = 1.5  # half-side of the candidate square, in strides
 IOU_WEIGHT = 3.0
@@ -142,3 +142,75 @@ def simota_assign(
     gt_index[anchors] = matched
     iou[anchors] = ious[matched, taken.nonzero().squeeze(1)]
     return Assignment(fg, gt_index, iou)
+
+
+@dataclass
+class BatchAssignment:
+    """Result for B images with A anchors each (what :func:`simota_assign` gives per image).
+
+    Attributes:
+        fg_mask: (B, A) bool, positives.
+        gt_index: (B, A) int64, the matched GT (index into the image's padded GTs), -1 for
+            background.
+        iou: (B, A) float, IoU of the anchor's predicted box with its GT (0 for background).
+    """
+
+    fg_mask: Tensor
+    gt_index: Tensor
+    iou: Tensor
+
+
+@torch.no_grad()
+def simota_assign_batch(
+    pred_boxes: Tensor,
+    obj_logits: Tensor,
+    cls_logits: Tensor,
+    centers: Tensor,
+    strides: Tensor,
+    gt_boxes: Tensor,
+    gt_classes: Tensor,
+    gt_valid: Tensor,
+) -> BatchAssignment:
+    """:func:`simota_assign` for a whole batch at once (no per-image loop, no wait for the
+    device), the GTs padded to the most any image has.
+
+    Args:
+        pred_boxes: (B, A, 4) cxcywh px; obj_logits (B, A); cls_logits (B, A, C).
+        centers: (A, 2) anchor cell centres, px; strides: (A,) px.
+        gt_boxes: (B, G, 4) cxcywh px; gt_classes: (B, G) int64; gt_valid: (B, G) bool,
+            False for padding.
+    """
+    B, A = obj_logits.shape
+    if gt_boxes.shape[1] == 0:  # no GT in any image
+        none = torch.zeros((B, A), dtype=torch.bool, device=obj_logits.device)
+        return BatchAssignment(none, torch.full_like(none, -1, dtype=torch.long), none.float())
+    inside = candidate_mask(centers, strides, gt_boxes.reshape(-1, 4)).view(B, -1, A)
+    inside &= gt_valid[:, :, None]
+    cand = inside.any(dim=1)  # (B, A): anchors considered at all
+    xy_g, xy_p = cxcywh_to_xyxy(gt_boxes)[:, :, None], cxcywh_to_xyxy(pred_boxes)[:, None]
+    lt, rb = (
+        torch.maximum(xy_g[..., :2], xy_p[..., :2]),
+        torch.minimum(xy_g[..., 2:], xy_p[..., 2:]),
+    )
+    inter = (rb - lt).clamp_min(0).prod(dim=-1)
+    ious = inter / (box_area(xy_g) + box_area(xy_p) - inter).clamp_min(1e-12)  # (B, G, A)
+    ious = ious * cand[:, None]  # as if only the candidates were there
+    p = (cls_logits.sigmoid() * obj_logits.sigmoid()[..., None]).sqrt().clamp(1e-8, 1 - 1e-8)
+    neg, pos = -torch.log1p(-p), -torch.log(p)  # (B, A, C)
+    picked = (pos - neg).gather(2, gt_classes[:, None, :].expand(B, A, -1))  # (B, A, G)
+    cost = neg.sum(dim=2)[:, None, :] + picked.transpose(1, 2)
+    cost = cost + IOU_WEIGHT * -torch.log(ious + 1e-8) + OUTSIDE_COST * (~inside).float()
+    cost = cost.masked_fill(~cand[:, None] | ~gt_valid[:, :, None], float("inf"))
+    k = min(TOP_K_IOU, A)
+    dynamic_k = ious.topk(k, dim=2).values.sum(dim=2).int().clamp_min(1) * gt_valid
+    ranks = torch.empty_like(cost, dtype=torch.long)
+    ranks.scatter_(2, cost.argsort(dim=2), torch.arange(A, device=cost.device).expand_as(ranks))
+    matching = (ranks < dynamic_k[..., None]) & cand[:, None]
+    best = cost.argmin(dim=1)  # (B, A): the cheapest GT of each anchor
+    shared = matching.sum(dim=1) > 1
+    one = torch.nn.functional.one_hot(best, gt_boxes.shape[1]).transpose(1, 2).bool()
+    matching = torch.where(shared[:, None], one, matching)
+    fg = matching.any(dim=1)
+    gt_index = torch.where(fg, matching.float().argmax(dim=1), -1)
+    iou = torch.where(fg, ious.gather(1, gt_index.clamp_min(0)[:, None])[:, 0], 0.0)
+    return BatchAssignment(fg, gt_index, iou)

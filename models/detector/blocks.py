@@ -19,7 +19,8 @@ class BaseConv(nn.Module):
         self.act = nn.SiLU(inplace=True)
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.act(self.bn(self.conv(x)))
+        out: Tensor = self.act(self.bn(self.conv(x)))
+        return out
 
 
 class DWConv(nn.Module):
@@ -31,7 +32,8 @@ class DWConv(nn.Module):
         self.pconv = BaseConv(c_in, c_out, 1)
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.pconv(self.dconv(x))
+        out: Tensor = self.pconv(self.dconv(x))
+        return out
 
 
 def conv3x3(c_in: int, c_out: int, stride: int = 1, depthwise: bool = False) -> nn.Module:
@@ -58,7 +60,8 @@ class Bottleneck(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         y = self.conv2(self.conv1(x))
-        return x + y if self.use_add else y
+        out: Tensor = x + y if self.use_add else y
+        return out
 
 
 class CSPLayer(nn.Module):
@@ -82,7 +85,8 @@ class CSPLayer(nn.Module):
         )
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.conv3(torch.cat((self.m(self.conv1(x)), self.conv2(x)), dim=1))
+        out: Tensor = self.conv3(torch.cat((self.m(self.conv1(x)), self.conv2(x)), dim=1))
+        return out
 
 
 class SPPBottleneck(nn.Module):
@@ -97,7 +101,8 @@ class SPPBottleneck(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         x = self.conv1(x)
-        return self.conv2(torch.cat([x, *(pool(x) for pool in self.pools)], dim=1))
+        out: Tensor = self.conv2(torch.cat([x, *(pool(x) for pool in self.pools)], dim=1))
+        return out
 
 
 class Focus(nn.Module):
@@ -113,4 +118,5 @@ class Focus(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         tl, bl = x[..., ::2, ::2], x[..., 1::2, ::2]
         tr, br = x[..., ::2, 1::2], x[..., 1::2, 1::2]
-        return self.conv(torch.cat((tl, bl, tr, br), dim=1))
+        out: Tensor = self.conv(torch.cat((tl, bl, tr, br), dim=1))
+        return out

@@ -35,6 +35,7 @@ class LevelHead(nn.Module):
         self.reg_pred = nn.Conv2d(hidden, 4, 1)
         self.obj_pred = nn.Conv2d(hidden, 1, 1)
         for layer in (self.cls_pred, self.obj_pred):
+            assert layer.bias is not None  # made with a bias
             nn.init.constant_(layer.bias, PRIOR_BIAS)
 
     def forward(self, x: Tensor) -> Tensor:

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .anchors import decode_boxes, encode_boxes
-from .assign import simota_assign
+from .assign import simota_assign_batch
 from .boxes import elementwise_iou_cxcywh, xyxy_to_cxcywh
 
 IOU_LOSS_WEIGHT = 5.0
@@ -50,29 +50,32 @@ def yolox_loss(
     obj, cls = raw[..., 4], raw[..., 5:]
     centers = (grid + 0.5) * strides[:, None]
 
-    fg_mask = torch.zeros(obj.shape, dtype=torch.bool, device=raw.device)  # (B, A)
-    gt_boxes, cls_targets, l1_targets = [], [], []
-    for b, t in enumerate(targets):
-        if len(t) == 0:
-            continue
-        t = t.to(device=raw.device, dtype=torch.float32)
-        gt_cls, gt_box = t[:, 0].long(), xyxy_to_cxcywh(t[:, 1:5])
-        a = simota_assign(
-            boxes[b].detach(), obj[b].detach(), cls[b].detach(), centers, strides, gt_box, gt_cls
-        )
-        idx = a.gt_index[a.fg_mask]
-        fg_mask[b] = a.fg_mask
-        gt_boxes.append(gt_box[idx])
-        cls_targets.append(F.one_hot(gt_cls[idx], num_classes).float() * a.iou[a.fg_mask, None])
-        if use_l1:
-            l1_targets.append(encode_boxes(gt_box[idx], grid[a.fg_mask], strides[a.fg_mask]))
+    # the GTs padded to the most an image has, moved to the device in one copy
+    counts = torch.tensor([len(t) for t in targets])
+    padded = torch.nn.utils.rnn.pad_sequence(
+        [t.reshape(-1, 5).float() for t in targets], batch_first=True
+    ).to(raw.device, non_blocking=True)
+    gt_valid = (torch.arange(padded.shape[1]) < counts[:, None]).to(raw.device)
+    gt_cls, gt_box = padded[..., 0].long(), xyxy_to_cxcywh(padded[..., 1:5])
+    a = simota_assign_batch(
+        boxes.detach(), obj.detach(), cls.detach(), centers, strides, gt_box, gt_cls, gt_valid
+    )
+    fg_mask = a.fg_mask  # (B, A)
+    b_idx = fg_mask.nonzero()[:, 0]  # row-major (b, a): the order boolean indexing walks
+    matched = a.gt_index[fg_mask]
+    gt_boxes = [gt_box[b_idx, matched]]
+    cls_targets = [F.one_hot(gt_cls[b_idx, matched], num_classes).float() * a.iou[fg_mask, None]]
+    l1_targets = []
+    if use_l1:
+        anchors = fg_mask.nonzero()[:, 1]
+        l1_targets.append(encode_boxes(gt_boxes[0], grid[anchors], strides[anchors]))
 
     num_fg = fg_mask.sum()
     denom = num_fg.clamp_min(1).float()
     loss_obj = F.binary_cross_entropy_with_logits(obj, fg_mask.float(), reduction="sum") / denom
     zero = raw.new_zeros(())
     loss_iou = loss_cls = loss_l1 = zero
-    if gt_boxes:
+    if len(gt_boxes[0]):
         # boolean indexing walks (b, a) row-major, the order in which the targets were collected
         iou = elementwise_iou_cxcywh(boxes[fg_mask], torch.cat(gt_boxes))
         loss_iou = IOU_LOSS_WEIGHT * (1 - iou.square()).sum() / denom

@@ -68,7 +68,7 @@ class YoloxDetector(nn.Module):
     # ------------------------------------------------------------------ anchors
     def anchors(self, input_hw: tuple[int, int], device: torch.device) -> tuple[Tensor, Tensor]:
         """Cached (grid (A, 2), strides (A,)) for an input size, on ``device``."""
-        key = (tuple(input_hw), torch.device(device))
+        key = ((int(input_hw[0]), int(input_hw[1])), torch.device(device))
         if key not in self._anchor_cache:
             # built as normal tensors even under inference_mode, so the cached grid can later
             # take part in a training step's autograd graph

@@ -52,7 +52,8 @@ def nearest_rotation(m: torch.Tensor) -> torch.Tensor:
     U, _, Vh = torch.linalg.svd(m)
     d = torch.sign(torch.linalg.det(U @ Vh))
     U = torch.cat([U[..., :2], U[..., 2:] * d[:, None, None]], dim=-1)
-    return U @ Vh
+    out: torch.Tensor = U @ Vh
+    return out
 
 
 def mean_pose(R: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -171,4 +171,5 @@ def site_decode(ratio: torch.Tensor, roi: SiteRoi) -> torch.Tensor:
     tz = ratio[:, 2] * roi.z_unit_mm * (roi.roi_out / roi.side)
     o_h = torch.cat([o, torch.ones_like(o[:, :1])], dim=1)
     ray = torch.linalg.solve(roi.K, o_h[:, :, None])[:, :, 0]  # K⁻¹ o, z = 1 for a pinhole
-    return ray / ray[:, 2:3] * tz[:, None]
+    out: torch.Tensor = ray / ray[:, 2:3] * tz[:, None]
+    return out

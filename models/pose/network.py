@@ -94,7 +94,8 @@ class Backbone(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 3, S_in, S_in) → (B, 8w, S_in/32, S_in/32)."""
-        return self.stages(self.stem(x))
+        out: torch.Tensor = self.stages(self.stem(x))
+        return out
 
 
 class GeometryHead(nn.Module):
@@ -118,11 +119,13 @@ class GeometryHead(nn.Module):
             if isinstance(m, nn.Conv2d | nn.ConvTranspose2d):
                 nn.init.normal_(m.weight, std=0.001)
         nn.init.normal_(self.out.weight, std=0.01)
+        assert self.out.bias is not None  # made with a bias
         nn.init.zeros_(self.out.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 8w, S_in/32, S_in/32) → (B, 1 + 3 + R + 1, S_out, S_out)."""
-        return self.out(self.body(x))
+        out: torch.Tensor = self.out(self.body(x))
+        return out
 
 
 class PatchPnP(nn.Module):

@@ -5,12 +5,14 @@ pixels, and to the wire's 3D points when there is a depth image: :mod:`.wire3d`,
 :mod:`.depth_fit`),
 :mod:`.seghead` (a light full-resolution needle segmenter giving that evidence),
 :mod:`.refiner` (the stage the ``gdrnet`` estimator runs: segment, fit, fall back) and
-:mod:`.train_seg` (training the segmenter). Units: mm, px.
+:mod:`.train_seg` and :mod:`.train_ends` (``bopsurg train seg|ends``). Units: mm, px.
 """
 
 from __future__ import annotations
 
-from bopsurg.models.refine.fit import ArcModel, Evidence, FitResult, FitSettings, refine_pose
+from bopsurg.models.predict_config import FitSettings
+from bopsurg.models.refine.arc import ArcModel
+from bopsurg.models.refine.fit import Evidence, FitResult, refine_pose
 from bopsurg.models.refine.refiner import NeedleRefiner, Segmenter
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
 

@@ -111,7 +111,8 @@ class NeedleSegNet(nn.Module):
         for k in range(self.cfg.stages - 1, -1, -1):
             e = skips.pop()
             d = getattr(self, f"dec{k}")(torch.cat([self._up(d, e), e], 1))
-        return self.out(d)
+        out: torch.Tensor = self.out(d)
+        return out
 
 
 def seg_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -1,34 +1,37 @@
 """Train the needle-end classifier (:mod:`.ends`) on a BOP split's GT poses.
 
-    python -m bopsurg.models.refine.train_ends DATASET --split train --out runs/ends --seed 0
+    bopsurg train ends DATASET --split train --out runs/ends --seed 0 \
+        [--config bench/recipes/ends.yaml]
 
 Per GT needle instance (visib_fract >= 0.3) the patches of its two ends are cut at the GT
 pose, twice the side the classifier sees (so a jittered crop stays inside), and kept in
 memory as uint8. An end whose projection is not on the visible mask (within 2 px: in the
-jaws, in the tissue) gets the target 0.5, "cannot tell" (``--seen-only`` leaves it out), so the
-end that is seen decides; one off the image is left out. Each step draws a batch of ends and crops
-each at a random turn (±``--turn`` degrees), scale (×0.8–1.25) and shift (±10 % of the side),
-as a pose estimate a few degrees and millimetres off would frame it, flipped about its x axis
-half the time (the other face), then the whole hue circle and the ``domain`` photometric set:
-the colours of the tissue are not what tells a tip from a tail. Binary cross-entropy, AdamW
-with warm-up and cosine decay; deterministic for a seed. Held-out scenes of the split (the
-estimators' :func:`~bopsurg.models.data.split_scenes`) give the validation accuracy on seen
-ends.
+jaws, in the tissue) gets the target 0.5, "cannot tell" (``recipe.unseen: false`` leaves it
+out), so the end that is seen decides; one off the image is left out. Each step draws a batch
+of ends and crops each at a random turn (±``recipe.turn_deg`` degrees), scale (×0.8–1.25)
+and shift (±10 % of the side), as a pose estimate a few degrees and millimetres off would
+frame it, flipped about its x axis half the time (the other face), then the whole hue circle
+(``recipe.hsv``) and the ``domain`` photometric set (the ``augment`` section): the colours of
+the tissue are not what tells a tip from a tail. Binary cross-entropy; the epoch loop is
+:func:`~bopsurg.models.training.fit` (AdamW, warm-up + cosine, EMA, resume). Held-out scenes
+of the split (the estimators' :func:`~bopsurg.models.data.split_scenes`) give the validation
+accuracy on seen ends.
 
-Writes OUT/needle_ends.pt and its JSON (config, the needle arc, recipe, seed, accuracy, and
-``--margin``: the logit margin a swap needs when the estimator runs this classifier without
-an ``ends_margin`` option; choose it on validation splits with ``bench/bench_ends.py``, the
-smallest margin at which the classifier turns none of their right poses).
+Writes OUT/needle_ends.pt (the EMA weights) and its JSON (config, the needle arc, recipe,
+seed, accuracy, and ``recipe.margin``: the logit margin a swap needs when the estimator runs
+this classifier without an ``ends_margin`` option; choose it on validation splits with
+``bench/bench_ends.py``, the smallest margin at which the classifier turns none of their
+right poses).
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import sys
-import time
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -39,13 +42,13 @@ from tqdm import tqdm
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask, load_rgb
 from bopsurg.errors import BopsurgError
-from bopsurg.models.checkpoint import save_checkpoint
-from bopsurg.models.data import list_instances, open_split, split_scenes
+from bopsurg.models import training
+from bopsurg.models.data import InstanceRecord, list_instances
 from bopsurg.models.detector.augment import hsv_jitter
 from bopsurg.models.photometric import PhotometricConfig, augment_batch, batch_seeds
 from bopsurg.models.refine.arc import ArcModel, dataset_arc
 from bopsurg.models.refine.ends import TIP, EndConfig, EndNet, end_frames, sample_patches
-from bopsurg.models.training import warmup_cosine_lr
+from bopsurg.models.run_config import LoaderConfig, resolved, write_config
 
 log = logging.getLogger(__name__)
 
@@ -64,18 +67,24 @@ def collect_ends(
     seed: int = 0,
     unseen: bool = True,
     progress: bool = True,
+    allow_empty: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Patches (N, 3, 2P, 2P) uint8 of the ends of the instances (visib_fract >= 0.3) of
     ``scene_ids`` at their GT poses, and their targets (N,): 1 the tip, 0 the tail, and with
     ``unseen`` 0.5 for an end hidden in the image (in the jaws, in the tissue): the patch
     says nothing, so the classifier learns to say so (logit 0) and the other end decides.
-    With ``max_instances``, that many instances drawn with ``seed``."""
+    With ``max_instances``, that many instances drawn with ``seed``.
+
+    Raises:
+        BopsurgError: No end is seen in these scenes (unless ``allow_empty``: then empty
+            tensors).
+    """
     per_image = list_instances(ds, scene_ids, obj_ids=[obj_id], min_visib=0.3)
     records = [r for rs in per_image.values() for r in rs]
     if max_instances is not None and len(records) > max_instances:
         pick = np.random.default_rng(seed).choice(len(records), max_instances, replace=False)
         records = [records[i] for i in sorted(pick)]
-    by_image: dict[tuple[int, int], list] = {}
+    by_image: dict[tuple[int, int], list[InstanceRecord]] = {}
     for r in records:
         by_image.setdefault((r.scene_id, r.im_id), []).append(r)
     kernel = np.ones((2 * SEEN_PX + 1, 2 * SEEN_PX + 1), np.uint8)
@@ -100,6 +109,9 @@ def collect_ends(
                     _cut(rgb, uv[0, end], axis[0, end], 2.0 * side[0, end], 2 * cfg.patch)
                 )
                 labels.append(float(end == TIP) if seen[iv, iu] else 0.5)
+    if not patches and allow_empty:
+        side = 2 * cfg.patch
+        return torch.zeros((0, 3, side, side), dtype=torch.uint8), torch.zeros(0)
     if not patches:
         raise BopsurgError(f"{ds.split_dir}: no needle end is seen in the GT of these scenes")
     return torch.from_numpy(np.stack(patches)), torch.tensor(labels)
@@ -123,7 +135,8 @@ def _cut(
         torch.tensor([side], dtype=torch.float32),
         size,
     )
-    return p[0].round().clamp(0, 255).to(torch.uint8).numpy()
+    out: np.ndarray = p[0].round().clamp(0, 255).to(torch.uint8).numpy()
+    return out
 
 
 def jittered(
@@ -156,144 +169,198 @@ def accuracy(net: EndNet, patches: torch.Tensor, labels: torch.Tensor, patch: in
     patches, labels = patches[keep], labels[keep]
     if len(patches) == 0:
         return float("nan")
+    was_training = net.training
     net.eval()
     c = patch // 2
+    dev = next(net.parameters()).device
     with torch.inference_mode():
         x = patches[:, :, c : c + patch, c : c + patch].float() / 255
-        pred = torch.cat([net(x[i : i + 512]) for i in range(0, len(x), 512)]) > 0
-    net.train()
+        pred = torch.cat([net(x[i : i + 512].to(dev)).cpu() for i in range(0, len(x), 512)]) > 0
+    net.train(was_training)
     return float((pred == labels.bool()).float().mean())
 
 
-def train(
-    data: Path,
-    out: Path,
-    *,
-    split: str = "train",
-    steps: int = 3000,
-    batch: int = 128,
-    lr: float = 3e-3,
-    seed: int = 0,
-    turn_deg: float = 15.0,
-    max_instances: int | None = None,
-    unseen: bool = True,
-    cfg: EndConfig | None = None,
-    margin: float = 0.0,
-    progress: bool = True,
-) -> Path:
-    """Train and write OUT/needle_ends.pt; returns its path. ``margin`` (logits) is recorded
-    as the classifier's default decision margin (:func:`.ends.load_judge`)."""
-    if not math.isfinite(margin):
-        raise BopsurgError(f"--margin must be a finite logit margin, got {margin}")
-    cfg = cfg or EndConfig()
-    torch.manual_seed(seed)
-    ds = open_split(data, split)
-    obj_id = 1
-    arc = dataset_arc(ds, obj_id)
-    train_ids, val_ids = split_scenes(ds)
+#: Model presets of ``bopsurg train ends --preset``: ``cpu`` the shipped classifier's
+#: layout, ``test`` a tiny one for tests.
+ENDS_PRESETS: dict[str, EndConfig] = {"cpu": EndConfig(), "test": EndConfig(patch=16, width=8)}
+
+
+def ends_preset(name: str) -> EndConfig:
+    """The classifier config of a preset name (:data:`ENDS_PRESETS`)."""
+    if name not in ENDS_PRESETS:
+        raise ValueError(f"unknown ends preset {name!r} (presets: {', '.join(ENDS_PRESETS)})")
+    return ENDS_PRESETS[name]
+
+
+def _domain() -> PhotometricConfig:
+    return PhotometricConfig(**PhotometricConfig.preset_values("domain"))
+
+
+@dataclass(frozen=True)
+class EndsRecipe:
+    """Training hyper-parameters (recorded in the checkpoint and the run folder).
+
+    The defaults are those of the classifier's former trainer (3,000 steps of 128 ends at
+    3e-3, warm-up over the first 5 %, AdamW decay 1e-4, the whole hue circle and the
+    ``domain`` photometric set).
+    """
+
+    epochs: int = 10
+    steps_per_epoch: int = 300
+    batch_size: int = 128
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+    warmup_epochs: float = 0.5
+    val_every: int = 5
+    #: Largest turn of a patch about its centre, degrees.
+    turn_deg: float = 15.0
+    #: Amplitudes of the per-patch HSV jitter (hue in turns: 0.5 the whole circle).
+    hsv: tuple[float, float, float] = (0.5, 0.5, 0.4)
+    #: Draw this many GT needles (seeded); None: all.
+    max_instances: int | None = None
+    #: Teach the hidden ends as "cannot tell" (target 0.5); False leaves them out.
+    unseen: bool = True
+    #: Logit margin a swap needs, recorded as the classifier's default (``bench_ends.py``).
+    margin: float = 0.0
+    augment: PhotometricConfig = field(default_factory=_domain)
+    #: Exported ``needle_ends`` checkpoint (same config) to start from; "" = random weights.
+    init: str = ""
+    #: ``fp32``, or ``bf16``: steps under ``torch.autocast`` in bfloat16 (a GPU's fast path;
+    #: :attr:`~bopsurg.models.training.Schedule.precision`).
+    precision: str = "fp32"
+
+    def __post_init__(self) -> None:
+        if self.precision not in training.PRECISIONS:
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
+        if not math.isfinite(self.margin):
+            raise ValueError(f"margin must be a finite logit margin, got {self.margin}")
+        if self.steps_per_epoch < 1:
+            raise ValueError(f"steps_per_epoch must be >= 1, got {self.steps_per_epoch}")
+        if self.max_instances is not None and (
+            isinstance(self.max_instances, bool)
+            or not isinstance(self.max_instances, int)
+            or self.max_instances < 1
+        ):
+            raise ValueError(f"max_instances must be null or >= 1, got {self.max_instances!r}")
+
+    def schedule(self) -> training.Schedule:
+        """What the epoch loop reads; the cosine starts right after the warm-up."""
+        return training.Schedule(
+            self.epochs, self.batch_size, self.lr, self.weight_decay, self.warmup_epochs,
+            0.0, self.val_every, self.steps_per_epoch, self.precision,
+        )  # fmt: skip
+
+
+def _step_fn(
+    net: EndNet,
+    patches: torch.Tensor,
+    labels: torch.Tensor,
+    cfg: EndConfig,
+    recipe: EndsRecipe,
+    dev: torch.device,
+    seed: int,
+) -> training.StepFn:
+    """The classifier's step: jittered crops of the drawn ends, colour, BCE."""
+
+    def step(idx: torch.Tensor, gen: torch.Generator, epoch: int) -> dict[str, torch.Tensor]:
+        x = jittered(patches[idx], gen, cfg.patch, recipe.turn_deg)
+        x = hsv_jitter(x, gen, *recipe.hsv)
+        x = augment_batch(x, recipe.augment, batch_seeds(seed, epoch, idx))
+        logits = net(x.to(dev)).float()  # the loss in fp32, also under bf16 autocast
+        loss = F.binary_cross_entropy_with_logits(logits, labels[idx].to(dev))
+        return {"total": loss}
+
+    return step
+
+
+def _ends(
+    splits: training.Splits, obj_id: int, arc: ArcModel, cfg: EndConfig, recipe: EndsRecipe,
+    seed: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Training patches and targets, then validation ones (seen ends only; a tenth as many
+    instances as ``recipe.max_instances``)."""
     x_tr, y_tr = collect_ends(
-        ds, train_ids, obj_id, arc, cfg, max_instances=max_instances, seed=seed, unseen=unseen,
-        progress=progress,
+        splits.train, splits.train_ids, obj_id, arc, cfg, max_instances=recipe.max_instances,
+        seed=seed, unseen=recipe.unseen, progress=False,
     )  # fmt: skip
-    n_val = None if max_instances is None else max(1, max_instances // 10)
+    n_val = None if recipe.max_instances is None else max(1, recipe.max_instances // 10)
     x_va, y_va = collect_ends(
-        ds, val_ids, obj_id, arc, cfg, max_instances=n_val, seed=seed + 1, unseen=False,
-        progress=progress,
+        splits.val, splits.val_ids, obj_id, arc, cfg, max_instances=n_val, seed=seed + 1,
+        unseen=False, progress=False, allow_empty=True,
     )  # fmt: skip
     log.info(
-        "%d training ends (%.0f %% tips, %.0f %% hidden), %d validation",
+        "needle_ends: %d training ends (%.0f %% tips, %.0f %% hidden), %d validation",
         len(x_tr), 100 * (y_tr == 1).float().mean(), 100 * (y_tr == 0.5).float().mean(), len(x_va),
     )  # fmt: skip
+    return x_tr, y_tr, x_va, y_va
+
+
+def train_ends(
+    dataset: str | Path,
+    out: str | Path,
+    *,
+    split: str = "train",
+    val_split: str | None = None,
+    obj_id: int | None = None,
+    preset: str = "cpu",
+    recipe: EndsRecipe | None = None,
+    seed: int = 0,
+    device: str = "auto",
+    restart: bool = False,
+    progress: bool = True,
+    config: EndConfig | None = None,
+    loader: LoaderConfig | None = None,
+) -> Path:
+    """Train (or resume) an end-classifier run in ``out``; returns ``needle_ends.pt``.
+
+    Args as :func:`bopsurg.models.train_pose.train_pose`: ``obj_id`` the needle (default:
+    the dataset's first object), ``config`` the network (default: the preset's); the ends
+    are held in memory, so ``loader`` only goes into the written configuration.
+    """
+    recipe, loader = recipe or EndsRecipe(), loader or LoaderConfig()
+    cfg = config or ends_preset(preset)
+    dev = training.resolve_device(device)
+    splits = training.open_splits(dataset, split, val_split)
+    obj_id = splits.train.obj_ids[0] if obj_id is None else obj_id
+    arc = dataset_arc(splits.train, obj_id)
+    settings = training.RunSettings(
+        "needle_ends", str(Path(dataset).resolve()), split, preset, seed, asdict(recipe),
+        {"val_split": val_split, "obj_id": obj_id}, cfg.to_dict(),
+    )  # fmt: skip
+    run, state = training.open_run(out, settings, restart=restart)
+    write_config(out, resolved("ends", preset, seed, cfg, recipe, loader))
+    x_tr, y_tr, x_va, y_va = _ends(splits, obj_id, arc, cfg, recipe, seed)
+    n_val = len(x_va)
     net = EndNet(cfg)
-    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
-    photometric = PhotometricConfig(**PhotometricConfig.preset_values("domain"))
-    gen = torch.Generator().manual_seed(seed)
-    warm = max(1, steps // 20)
-    t0 = time.perf_counter()
-    net.train()
-    bar = tqdm(range(steps), desc="needle_ends", disable=not progress)
-    for step in bar:
-        for g in opt.param_groups:
-            g["lr"] = warmup_cosine_lr(step, steps, warm, lr)
-        idx = torch.randint(len(x_tr), (batch,), generator=gen)
-        x = jittered(x_tr[idx], gen, cfg.patch, turn_deg)
-        x = hsv_jitter(x, gen, 0.5, 0.5, 0.4)
-        x = augment_batch(x, photometric, batch_seeds(seed, step, idx))
-        loss = F.binary_cross_entropy_with_logits(net(x), y_tr[idx])
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        bar.set_postfix(loss=f"{loss.item():.3f}")
-    seconds = time.perf_counter() - t0
-    acc = accuracy(net, x_va, y_va, cfg.patch)
-    log.info("validation accuracy %.4f on %d ends (%.1f min)", acc, len(x_va), seconds / 60)
-    path = out / "needle_ends.pt"
-    out.mkdir(parents=True, exist_ok=True)
-    meta = {
+    if recipe.init and state is None:
+        training.init_weights(net, recipe.init, "needle_ends", cfg.to_dict())
+    net = net.to(dev)
+    meta: dict[str, Any] = {
         "arc": {"radius": arc.radius, "arc_rad": arc.arc_rad},
-        "dataset": str(data),
-        "split": split,
-        "ends": len(x_tr),
-        "val_ends": len(x_va),
-        "val_accuracy": round(acc, 4),
-        "margin": margin,
-        "recipe": {
-            "steps": steps, "batch": batch, "lr": lr, "seed": seed, "turn_deg": turn_deg,
-            "max_instances": max_instances, "unseen": unseen,
-        },
-        "train_seconds": round(seconds, 1),
-        "torch": torch.__version__,
+        "ends": len(x_tr), "val_ends": int((y_va != 0.5).sum()), "margin": recipe.margin,
     }  # fmt: skip
-    save_checkpoint(path, net.state_dict(), kind="needle_ends", config=cfg.to_dict(), meta=meta)
-    log.info("wrote %s", path)
+    export = training.Export(Path(out) / "needle_ends.pt", "needle_ends", cfg.to_dict(), meta)
+    path: Path = training.fit(
+        net, run, state, recipe.schedule(), n_train=len(x_tr),
+        step=_step_fn(net, x_tr, y_tr, cfg, recipe, dev, seed),
+        validate=lambda ema: {"accuracy": accuracy(ema, x_va, y_va, cfg.patch)} if n_val else {},
+        export=export, device=dev, progress=progress,
+    )  # fmt: skip
     return path
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="python -m bopsurg.models.refine.train_ends",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    """The former entry point: says where the trainer went."""
+    del argv
+    print(  # noqa: T201 (the CLI's one-line error)
+        "error: python -m bopsurg.models.refine.train_ends is gone: use 'bopsurg train ends' "
+        "(--steps N: --set recipe.steps_per_epoch=N --epochs 1; --batch: --batch-size; "
+        "--turn, --max-instances, --margin: --set recipe.turn_deg=, recipe.max_instances=, "
+        "recipe.margin=; --seen-only: --set recipe.unseen=false; --patch, --scale: "
+        "--set ends.patch=, ends.scale=)",
+        file=sys.stderr,
     )
-    ap.add_argument("dataset", type=Path, help="BOP dataset root")
-    ap.add_argument("--split", default="train", help="training split(s), comma-separated")
-    ap.add_argument("--out", type=Path, required=True, help="run folder")
-    ap.add_argument("--steps", type=int, default=3000, help="optimiser steps (default 3000)")
-    ap.add_argument("--batch", type=int, default=128)
-    ap.add_argument("--lr", type=float, default=3e-3)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--turn", type=float, default=15.0, help="patch turn jitter, degrees")
-    ap.add_argument("--max-instances", type=int, help="draw this many GT needles (default: all)")
-    ap.add_argument(
-        "--seen-only",
-        action="store_true",
-        help="leave out the hidden ends (default: taught as 'cannot tell', target 0.5)",
-    )
-    ap.add_argument("--patch", type=int, default=EndConfig.patch, help="patch side, px")
-    ap.add_argument("--scale", type=float, default=EndConfig.scale,
-                    help="patch side / the arc's projected radius")  # fmt: skip
-    ap.add_argument(
-        "--margin",
-        type=float,
-        default=0.0,
-        help="logit margin a swap needs, recorded as the classifier's default (choose it on "
-        "validation splits with bench/bench_ends.py; default 0)",
-    )
-    ap.add_argument("--no-progress", action="store_true")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    try:
-        train(
-            args.dataset, args.out, split=args.split, steps=args.steps, batch=args.batch,
-            lr=args.lr, seed=args.seed, turn_deg=args.turn, max_instances=args.max_instances,
-            unseen=not args.seen_only,
-            cfg=EndConfig(patch=args.patch, scale=args.scale), margin=args.margin,
-            progress=not args.no_progress,
-        )  # fmt: skip
-    except (BopsurgError, ValueError) as err:
-        print(f"error: {err}", file=sys.stderr)  # noqa: T201 (the CLI's one-line error)
-        return 2
-    return 0
+    return 2
 
 
 if __name__ == "__main__":

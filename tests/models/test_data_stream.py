@@ -273,3 +273,49 @@ def test_held_out_scenes_do_not_alias_with_the_viewpoint_cycle():
     assert split_scenes(ds) == (train, held)
     few = SimpleNamespace(scene_ids=[3, 7], split_dir=Path("train"))
     assert split_scenes(few) == ([3], [7])  # type: ignore[arg-type]
+
+
+def test_the_shared_cache_is_filled_once_for_every_process_and_keeps_to_its_budget():
+    """A :class:`SlotCache` copied to another process (pickled, as a loader worker gets it)
+    fills the same file: what one decodes the other reads; samples past the budget are
+    decoded every time; the file goes with the cache that made it."""
+    import os
+    import pickle
+
+    import numpy as np
+
+    from bopsurg.models.data import SlotCache
+
+    layout = (((2, 3), np.dtype(np.uint8)), ((3,), np.dtype(np.float16)))
+    slot = 6 + 6
+    cache = SlotCache(5, layout, max_bytes=3 * (slot + 1) + 1)
+    assert cache.capacity == 3
+    worker = pickle.loads(pickle.dumps(cache))
+    made = []
+
+    def sample(i):
+        def make():
+            made.append(i)
+            return torch.full((2, 3), i, dtype=torch.uint8), torch.arange(3).half() * i
+
+        return make
+
+    first = worker.get(1, sample(1))
+    again = cache.get(1, sample(1))  # the other process: read, not decoded
+    assert made == [1]
+    assert cache.hits == 1
+    for a, b in zip(first, again, strict=True):
+        assert torch.equal(a, b)
+        assert a.dtype == b.dtype
+    cache.get(4, sample(4))
+    cache.get(4, sample(4))  # beyond the capacity: decoded each time
+    assert made == [1, 4, 4]
+    assert len(cache) == 1
+    path = cache.path
+    del worker
+    assert os.path.exists(path)
+    del cache, again
+    import gc
+
+    gc.collect()
+    assert not os.path.exists(path)

@@ -194,10 +194,11 @@ def dataset(tmp_path_factory):
 
 
 def _train(dataset, out, *extra: str) -> int:
-    from bopsurg.models.refine.train_ends import main
+    from bopsurg.cli.main import main
 
-    args = [str(dataset), "--out", str(out), "--steps", "4", "--batch", "8", "--patch", "16"]
-    return main([*args, "--no-progress", *extra])
+    args = ["train", "ends", str(dataset), "--out", str(out), "--epochs", "1", "--batch-size", "8"]
+    tiny = ["--set", "recipe.steps_per_epoch=4", "--set", "ends.patch=16"]
+    return main([*args, *tiny, "--no-progress", *extra])
 
 
 def test_the_trainer_is_seeded_records_its_run_and_loads(dataset, tmp_path):
@@ -211,14 +212,14 @@ def test_the_trainer_is_seeded_records_its_run_and_loads(dataset, tmp_path):
     assert not all(torch.equal(a[k], c[k]) for k in a)
     assert info["config"]["patch"] == 16
     assert info["meta"]["ends"] > 0
-    assert 0.0 <= info["meta"]["val_accuracy"] <= 1.0
+    assert 0.0 <= info["meta"]["validation"]["val_accuracy"] <= 1.0
     judge = load_judge(tmp_path / "a" / "needle_ends.pt", torch.device("cpu"))
     assert judge.arc.radius == pytest.approx(ARC.radius, rel=1e-6)
     assert judge.margin == 0.0  # none chosen
 
 
 def test_the_margin_chosen_for_a_classifier_travels_with_it(dataset, tmp_path):
-    assert _train(dataset, tmp_path / "m", "--margin", "2.5") == 0
+    assert _train(dataset, tmp_path / "m", "--set", "recipe.margin=2.5") == 0
     path = tmp_path / "m" / "needle_ends.pt"
     assert load_checkpoint(path, "needle_ends")[1]["meta"]["margin"] == 2.5
     assert load_judge(path, torch.device("cpu")).margin == 2.5
@@ -258,8 +259,8 @@ def test_trainer_errors_are_one_line(dataset, tmp_path, capsys):
     assert _train(dataset, tmp_path / "x", "--split", "nope") == 2
     err = one_line_error(capsys)
     assert "nope" in err
-    assert _train(dataset, tmp_path / "y", "--margin", "nan") == 2
-    assert "--margin" in one_line_error(capsys)
+    assert _train(dataset, tmp_path / "y", "--set", "recipe.margin=nan") == 2
+    assert "margin must be a finite logit margin" in one_line_error(capsys)
     assert not (tmp_path / "y").exists()
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -51,7 +52,9 @@ def test_dump_config_gives_every_field_and_round_trips(tmp_path, capsys):
     assert conf["pose"]["w_region"] == 1.0
     assert conf["recipe"]["epochs"] == 40
     assert conf["augment"]["jpeg_p"] == 0.0
-    assert conf["loader"] == {"num_workers": 0, "cache_mb": 4096, "cache_items": None}
+    assert conf["loader"] == {
+        "num_workers": 0, "cache_mb": 4096, "cache_items": None, "shared_cache": True,
+    }  # fmt: skip
     again = _dump(capsys, "pose", "--config", _write(tmp_path / "c.yaml", yaml.safe_dump(conf)))
     assert again == conf
     det = _dump(capsys, "detector", "--preset", "s")
@@ -225,7 +228,8 @@ RECIPES = sorted((Path(__file__).parents[2] / "bench" / "recipes").glob("*.yaml"
 def test_shipped_recipes_resolve_and_say_what_they_set(recipe, capsys):
     """The model card's commands pass these files to ``bopsurg train --config``: each must
     still resolve (no key renamed away under it), and every value it sets must reach the run."""
-    kind = "detector" if "detector" in recipe.name else "pose"
+    kinds = ("detector", "seg", "ends")
+    kind = next((k for k in kinds if k in recipe.stem.split("_")), "pose")
     conf = _dump(capsys, kind, "--config", str(recipe))
     for section, values in yaml.safe_load(recipe.read_text(encoding="utf-8")).items():
         if not isinstance(values, dict):
@@ -234,3 +238,35 @@ def test_shipped_recipes_resolve_and_say_what_they_set(recipe, capsys):
         for key, value in values.items():
             if key != "preset":  # augment's named starting set, resolved into its fields
                 assert conf[section][key] == value, f"{section}.{key}"
+
+
+@pytest.mark.parametrize(
+    ("item", "needle"),
+    [
+        ("recipe.lr", "--set 'recipe.lr': expected SECTION.KEY=VALUE"),
+        ("recipes.lr=1", "unknown section 'recipes'"),
+        ("recipe.lr=[1", "the value is not valid YAML"),
+        ("recipe.lrr=1", "recipe: unknown key 'lrr'"),
+    ],
+)
+def test_set_overrides_one_field_after_the_file_and_flags(tmp_path, capsys, item, needle):
+    path = _write(tmp_path / "c.yaml", "recipe: {lr: 0.1, epochs: 3}\nseed: 2\n")
+    conf = _dump(capsys, "pose", "--config", path, "--lr", "0.2", "--set", "recipe.lr=0.3")
+    assert (conf["recipe"]["lr"], conf["recipe"]["epochs"], conf["seed"]) == (0.3, 3, 2)
+    assert _dump(capsys, "pose", "--set", "seed=5", "--set", "pose.roi_in=160")["seed"] == 5
+    assert needle in _error(capsys, ["pose", "--set", item, "--dump-config"])
+
+
+@pytest.mark.parametrize("kind", ["detector", "seg", "ends"])  # pose: needs depth
+def test_every_model_trains_in_bfloat16(dataset, tmp_path, kind):
+    """``recipe.precision: bf16`` (a GPU's fast path, autocast) runs on the CPU too: every
+    trainer's step, its losses finite and logged with the loop's speed and wait share."""
+    out = tmp_path / kind
+    args = ["train", kind, str(dataset), "--split", "test", "--out", str(out), "--no-progress"]
+    tiny = ["--preset", "test", "--epochs", "1", "--batch-size", "2"]
+    steps = ["--set", "recipe.steps_per_epoch=2", "--set", "recipe.precision=bf16"]
+    assert main([*args, *tiny, *steps]) == 0
+    record = json.loads((out / "log.jsonl").read_text().splitlines()[-1])
+    assert np.isfinite(record["loss_total"])
+    assert record["samples_per_s"] > 0
+    assert 0 <= record["data_wait"] < 1

@@ -78,3 +78,17 @@ def test_a_resumed_fit_replays_the_same_batches_and_ends_with_the_same_weights(t
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
     state = torch.load(tmp_path / "b" / "train_state.pt", weights_only=True)
     assert state["epoch"] == 3
+
+
+def test_a_fixed_step_count_draws_from_consecutive_shuffles():
+    """``steps_per_epoch``: that many full batches; every sample once before any twice."""
+    gen = torch.Generator().manual_seed(0)
+    got = list(training.batches(5, 3, gen, steps=4))
+    assert [len(b) for b in got] == [3, 3, 3, 3]
+    flat = torch.cat(got).tolist()
+    assert sorted(flat[:5]) == list(range(5))
+    assert sorted(flat[5:10]) == list(range(5))
+    assert training.Schedule(1, 3, 0.1, 0.0, 0.0, 0.0, 1, 4).epoch_steps(5) == 4
+    assert training.Schedule(1, 3, 0.1, 0.0, 0.0, 0.0, 1).epoch_steps(7) == 2
+    with pytest.raises(ValueError, match="precision"):
+        training.Schedule(1, 3, 0.1, 0.0, 0.0, 0.0, 1, precision="fp16")
