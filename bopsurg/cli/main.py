@@ -12,7 +12,7 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from bopsurg._version import __version__
 from bopsurg.cli.commands import add_commands, selected_command
@@ -56,7 +56,13 @@ def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
     return parser
 
 
-class _CurrentStderr(logging.StreamHandler[TextIO]):
+if TYPE_CHECKING:
+    _StreamHandler = logging.StreamHandler[TextIO]
+else:  # subscriptable at run time from Python 3.11 only
+    _StreamHandler = logging.StreamHandler
+
+
+class _CurrentStderr(_StreamHandler):
     """Writes each record to ``sys.stderr`` as it is when the record is emitted: a program
     that swaps ``sys.stderr`` after calling :func:`main` (pytest's capture, a notebook)
     keeps getting the log, never a closed stream's error."""
