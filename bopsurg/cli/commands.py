@@ -216,6 +216,9 @@ def run_command(name: str, **values: Any) -> int:
     if unknown:
         raise BopsurgError(f"'bopsurg {name}' has no option(s) {unknown}")
     vars(args).update(values)
+    from bopsurg.cli.progress import apply_progress_policy
+
+    apply_progress_policy(args)
     missing = [a.dest for a in parser._actions if a.required and getattr(args, a.dest) is None]
     if missing:
         raise BopsurgError(f"'bopsurg {name}' needs {missing}")

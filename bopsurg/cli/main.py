@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from bopsurg._version import __version__
 from bopsurg.cli.commands import add_commands, selected_command
+from bopsurg.cli.progress import apply_progress_policy
 from bopsurg.errors import BopsurgError
 
 DESCRIPTION = """\
@@ -81,6 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"bopsurg: error: {err}", file=sys.stderr)
         return 2
     args = parser.parse_args(argv)
+    apply_progress_policy(args)
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(
         level=level, format="%(levelname)s: %(message)s", handlers=[_CurrentStderr()], force=True
