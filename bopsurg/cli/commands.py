@@ -87,6 +87,11 @@ CORE: tuple[Command, ...] = (
         "write the embedded example: a needle BOP dataset and a results CSV",
         "bopsurg.cli.example_cmd",
     ),
+    Command(
+        "recipes",
+        "list the shipped training recipes (bopsurg train --config), print one or its path",
+        "bopsurg.cli.recipes_cmd",
+    ),
 )
 
 #: Help lines of the built-in plugin commands (the same as their modules' ``HELP``; a test
