@@ -8,7 +8,12 @@ DEMO_OUT ?= demo_out
 # pytest worker processes (pytest-xdist): every core; TEST_WORKERS=0 runs in one process
 TEST_WORKERS ?= auto
 
-.PHONY: demo test test-after-ray lint bench venv clean
+# The core on the other supported Pythons (the whole suite runs on $(PYTHON)).
+CORE_PYTHONS ?= python3.10 python3.12 python3.13
+# The core tests: they need only the core and bopsurg[test]; the rest of tests/ needs the extras.
+CORE_TESTS := tests/bopsurg tests/test_packaging.py
+
+.PHONY: demo test test-after-ray test-pythons wheel lint bench venv clean
 
 venv: $(STAMP)
 
@@ -42,9 +47,29 @@ test-after-ray: $(STAMP)
 		--out $$home/ev --no-progress --executor ray >/dev/null && \
 	HOME=$$home $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS)
 
+# The wheel users install, in dist/ (built from the checkout, no network).
+wheel: $(STAMP)
+	rm -rf dist build
+	$(BIN)/python -m pip wheel -q --no-deps --no-build-isolation -w dist .
+
+# The wheel installed with the core tests' extra only (no torch, pybullet, rosbags, rerun) into
+# a fresh virtualenv of each of CORE_PYTHONS, and the core tests run against it from a copy of
+# tests/ outside the checkout, so the installed wheel is imported, not the source tree.
+test-pythons: wheel
+	set -e; whl=$$(ls dist/bopsurg-*.whl); tmp=$$(mktemp -d); trap 'rm -rf "$$tmp"' EXIT; \
+	cp -r tests pyproject.toml "$$tmp/"; \
+	for py in $(CORE_PYTHONS); do \
+		echo "== core tests on $$py"; \
+		$$py -c "" || { echo "$$py not found: set CORE_PYTHONS to interpreters"; exit 1; }; \
+		$$py -m venv "$$tmp/venv-$$py"; \
+		"$$tmp/venv-$$py/bin/python" -m pip install -q -c constraints.txt "$$whl[test]"; \
+		(cd "$$tmp" && "$$tmp/venv-$$py/bin/python" -m pytest -q -p no:cacheprovider \
+			-n $(TEST_WORKERS) $(CORE_TESTS)); \
+	done
+
 bench: $(STAMP)
 	$(BIN)/python bench/bench_metrics.py
 	$(BIN)/python bench/bench_eval.py
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info
+	rm -rf $(VENV) $(DEMO_OUT) build dist *.egg-info
