@@ -59,12 +59,14 @@ test-pythons: wheel
 	set -e; whl=$$(ls dist/bopsurg-*.whl); tmp=$$(mktemp -d); trap 'rm -rf "$$tmp"' EXIT; \
 	cp -r tests pyproject.toml "$$tmp/"; \
 	for py in $(CORE_PYTHONS); do \
-		echo "== core tests on $$py"; \
+		echo "== core tests on $$py"; t0=$$(date +%s); \
 		$$py -c "" || { echo "$$py not found: set CORE_PYTHONS to interpreters"; exit 1; }; \
 		$$py -m venv "$$tmp/venv-$$py"; \
 		"$$tmp/venv-$$py/bin/python" -m pip install -q -c constraints.txt "$$whl[test]"; \
+		t1=$$(date +%s); \
 		(cd "$$tmp" && "$$tmp/venv-$$py/bin/python" -m pytest -q -p no:cacheprovider \
 			-n $(TEST_WORKERS) $(CORE_TESTS)); \
+		echo "== $$py: install $$((t1 - t0)) s, tests $$(($$(date +%s) - t1)) s"; \
 	done
 
 bench: $(STAMP)
