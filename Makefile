@@ -8,7 +8,12 @@ DEMO_OUT ?= demo_out
 # pytest worker processes (pytest-xdist): every core; TEST_WORKERS=0 runs in one process
 TEST_WORKERS ?= auto
 
-.PHONY: demo test test-after-ray lint bench docs venv clean
+# The core on the other supported Pythons (the whole suite runs on $(PYTHON)).
+CORE_PYTHONS ?= python3.10 python3.12 python3.13
+# The core tests: they need only the core and bopsurg[test]; the rest of tests/ needs the extras.
+CORE_TESTS := tests/bopsurg tests/test_packaging.py
+
+.PHONY: demo test test-after-ray test-pythons wheel lint bench docs venv clean
 
 venv: $(STAMP)
 
@@ -42,6 +47,29 @@ test-after-ray: $(STAMP)
 		--out $$home/ev --no-progress --executor ray >/dev/null && \
 	HOME=$$home $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS)
 
+# The wheel users install, in dist/ (built from the checkout, no network).
+wheel: $(STAMP)
+	rm -rf dist build
+	$(BIN)/python -m pip wheel -q --no-deps --no-build-isolation -w dist .
+
+# The wheel installed with the core tests' extra only (no torch, pybullet, rosbags, rerun) into
+# a fresh virtualenv of each of CORE_PYTHONS, and the core tests run against it from a copy of
+# tests/ outside the checkout, so the installed wheel is imported, not the source tree.
+test-pythons: wheel
+	set -e; whl=$$(ls dist/bopsurg-*.whl); tmp=$$(mktemp -d); trap 'rm -rf "$$tmp"' EXIT; \
+	cp -r tests pyproject.toml "$$tmp/"; \
+	for py in $(CORE_PYTHONS); do \
+		echo "== core tests on $$py"; t0=$$(date +%s); \
+		$$py -c "" || { echo "$$py not found: set CORE_PYTHONS to interpreters"; exit 1; }; \
+		$$py -m venv "$$tmp/venv-$$py"; \
+		"$$tmp/venv-$$py/bin/python" -m pip install -q -c constraints.txt "$$whl[test]"; \
+		t1=$$(date +%s); \
+		(cd "$$tmp" && "$$tmp/venv-$$py/bin/python" -m pytest -q -p no:cacheprovider \
+			-n $(TEST_WORKERS) $(CORE_TESTS)); \
+		echo "== $$py: install $$((t1 - t0)) s, tests $$(($$(date +%s) - t1)) s"; \
+	done
+
+
 # The README's speed table as Markdown, measured in one run (bench/speed_table.py). Add e.g.
 # BENCH_ARGS="--device cuda" or "--data demo_out/data --results demo_out/results.csv
 # --toolkit ../bop_toolkit --toolkit-python ../bop-venv/bin/python" (ratio to the reference).
@@ -56,4 +84,4 @@ docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) build site *.egg-info
+	rm -rf $(VENV) $(DEMO_OUT) build dist site *.egg-info

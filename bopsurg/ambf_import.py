@@ -137,6 +137,52 @@ def _load_yaml(path: Path) -> Any:
         raise DatasetError(f"not valid YAML ({reason})", path=path, line=line) from None
 
 
+def _read_intrinsics(intr_path: Path) -> np.ndarray:
+    """K (3, 3), px, of ``intrinsic.yaml``, checked to be a camera matrix."""
+    intr = _load_yaml(intr_path)
+    if not isinstance(intr, dict) or "intrinsic" not in intr:
+        raise DatasetError(
+            "missing ('fx, 0, cx, 0, fy, cy, 0, 0, 1')", path=intr_path, field="intrinsic"
+        )
+    K = _numbers(intr["intrinsic"], 9, intr_path, "intrinsic").reshape(3, 3)
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+        raise DatasetError(
+            f"not a camera matrix: {K.ravel().tolist()}", path=intr_path, field="intrinsic"
+        )
+    return K
+
+
+def _read_frame(
+    key: Any, entry: Any, extr_path: Path, rgb_dir: Path, depth_dir: Path | None
+) -> AmbfFrame:
+    """One entry of ``extrinsic.yaml``: its pose checked, its RGB (and depth) image found."""
+    if not isinstance(key, str) or not key.isdigit():
+        raise DatasetError(
+            f"frame key must be a quoted frame number such as '00010', got {key!r}",
+            path=extr_path,
+        )
+    if not isinstance(entry, dict):
+        raise DatasetError("expected rot_model2cam and t_model2cam", path=extr_path, field=key)
+    for name in ("rot_model2cam", "t_model2cam"):
+        if name not in entry:
+            raise DatasetError("missing", path=extr_path, field=f"{key}/{name}")
+    R = _numbers(entry["rot_model2cam"], 9, extr_path, f"{key}/rot_model2cam").reshape(3, 3)
+    t = _numbers(entry["t_model2cam"], 3, extr_path, f"{key}/t_model2cam")
+    if not is_rotation(R)[0]:
+        raise DatasetError(
+            "not a rotation matrix (orthonormal, det +1)",
+            path=extr_path,
+            field=f"{key}/rot_model2cam",
+        )
+    rgb = rgb_dir / f"{key}.png"
+    if not rgb.is_file():
+        raise DatasetError(f"frame {key} of {extr_path.name} has no image", path=rgb)
+    depth = depth_dir / f"{key}.png" if depth_dir is not None else None
+    if depth is not None and not depth.is_file():
+        raise DatasetError(f"frame {key} of {extr_path.name} has no depth image", path=depth)
+    return AmbfFrame(key, int(key), rgb, depth, R, t)
+
+
 def read_ambf_yaml(src: str | Path) -> AmbfRecording:
     """Read and validate a folder of the YAML layout (see the module docstring).
 
@@ -148,17 +194,8 @@ def read_ambf_yaml(src: str | Path) -> AmbfRecording:
     src = Path(src)
     if not src.is_dir():
         raise DatasetError("folder not found", path=src)
-    intr_path, extr_path = src / "intrinsic.yaml", src / "extrinsic.yaml"
-    intr = _load_yaml(intr_path)
-    if not isinstance(intr, dict) or "intrinsic" not in intr:
-        raise DatasetError(
-            "missing ('fx, 0, cx, 0, fy, cy, 0, 0, 1')", path=intr_path, field="intrinsic"
-        )
-    K = _numbers(intr["intrinsic"], 9, intr_path, "intrinsic").reshape(3, 3)
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
-        raise DatasetError(
-            f"not a camera matrix: {K.ravel().tolist()}", path=intr_path, field="intrinsic"
-        )
+    extr_path = src / "extrinsic.yaml"
+    K = _read_intrinsics(src / "intrinsic.yaml")
     extr = _load_yaml(extr_path)
     if not isinstance(extr, dict) or not extr:
         raise DatasetError(
@@ -170,33 +207,10 @@ def read_ambf_yaml(src: str | Path) -> AmbfRecording:
     has_depth = depth_dir.is_dir()
     if not has_depth:
         log.warning("%s: no depth_img/ folder; visibility will come from the needle alone", src)
-    frames: list[AmbfFrame] = []
-    for key, entry in extr.items():
-        if not isinstance(key, str) or not key.isdigit():
-            raise DatasetError(
-                f"frame key must be a quoted frame number such as '00010', got {key!r}",
-                path=extr_path,
-            )
-        if not isinstance(entry, dict):
-            raise DatasetError("expected rot_model2cam and t_model2cam", path=extr_path, field=key)
-        for name in ("rot_model2cam", "t_model2cam"):
-            if name not in entry:
-                raise DatasetError("missing", path=extr_path, field=f"{key}/{name}")
-        R = _numbers(entry["rot_model2cam"], 9, extr_path, f"{key}/rot_model2cam").reshape(3, 3)
-        t = _numbers(entry["t_model2cam"], 3, extr_path, f"{key}/t_model2cam")
-        if not is_rotation(R)[0]:
-            raise DatasetError(
-                "not a rotation matrix (orthonormal, det +1)",
-                path=extr_path,
-                field=f"{key}/rot_model2cam",
-            )
-        rgb = rgb_dir / f"{key}.png"
-        if not rgb.is_file():
-            raise DatasetError(f"frame {key} of {extr_path.name} has no image", path=rgb)
-        depth = depth_dir / f"{key}.png" if has_depth else None
-        if depth is not None and not depth.is_file():
-            raise DatasetError(f"frame {key} of {extr_path.name} has no depth image", path=depth)
-        frames.append(AmbfFrame(key, int(key), rgb, depth, R, t))
+    frames = [
+        _read_frame(key, entry, extr_path, rgb_dir, depth_dir if has_depth else None)
+        for key, entry in extr.items()
+    ]
     ids = [f.im_id for f in frames]
     if len(set(ids)) != len(ids):
         raise DatasetError("two frame keys name the same frame number", path=extr_path)
@@ -356,6 +370,54 @@ def _split_dirs(root: Path) -> list[Path]:
     return sorted(d for d in root.iterdir() if d.is_dir() and list_scene_ids(d))
 
 
+def _load_scene_gts(
+    src: Path, splits: list[Path], ids: set[int]
+) -> dict[Path, dict[int, list[GtPose]]]:
+    """Every split's ``scene_gt.json`` (by path relative to ``src``), each obj_id checked to
+    be one of ``ids``."""
+    gts = {}
+    for split in splits:
+        for sid in list_scene_ids(split):
+            path = split / f"{sid:06d}" / "scene_gt.json"
+            if path.is_file():
+                gts[path.relative_to(src)] = load_scene_gt(path)
+    for gt_file, scene_gts in gts.items():
+        for im_id, items in scene_gts.items():
+            for gt_id, gt in enumerate(items):
+                if gt.obj_id not in ids:
+                    raise DatasetError(
+                        f"unknown obj_id {gt.obj_id}: not in models_info.json",
+                        path=src / gt_file,
+                        field=f"{im_id}/{gt_id}/obj_id",
+                    )
+    return gts
+
+
+def _load_targets(src: Path) -> dict[str, Any]:
+    """The dataset's ``test_targets*.json`` by file name, each a list of targets."""
+    targets = {p.name: load_json(p) for p in sorted(src.glob("test_targets*.json"))}
+    for name, content in targets.items():
+        # BOP19 targets name an object; BOP24 ones (per image) name none and stay as they are.
+        if not isinstance(content, list) or not all(
+            isinstance(t, dict) and isinstance(t.get("obj_id", 0), int) for t in content
+        ):
+            raise DatasetError("expected a list of targets with integer obj_id", path=src / name)
+    return targets
+
+
+def _renumber_models(folder: Path, info: dict[Any, Any], new_id: dict[int, int]) -> None:
+    """Rename the model files of ``folder`` to their new obj_ids and rewrite its
+    ``models_info.json`` (``info``, the source's) with them."""
+    moved = {}
+    for i in new_id:  # two steps, so that obj 0 -> 1 does not overwrite obj 1 -> 2
+        old = model_path(folder, i)
+        if old.is_file():
+            moved[i] = old.rename(old.with_name(f".renumber-{old.name}"))
+    for i, path in moved.items():
+        path.rename(model_path(folder, new_id[i]))
+    save_json(folder / "models_info.json", {new_id[int(k)]: v for k, v in info.items()})
+
+
 def import_bop_renumbered(
     src: str | Path,
     out: str | Path,
@@ -391,28 +453,8 @@ def import_bop_renumbered(
             path=model_dirs[0] / "models_info.json",
         )
     splits = _split_dirs(src)
-    gts = {}  # validated before anything is written
-    for split in splits:
-        for sid in list_scene_ids(split):
-            path = split / f"{sid:06d}" / "scene_gt.json"
-            if path.is_file():
-                gts[path.relative_to(src)] = load_scene_gt(path)
-    for gt_file, scene_gts in gts.items():
-        for im_id, items in scene_gts.items():
-            for gt_id, gt in enumerate(items):
-                if gt.obj_id not in ids:
-                    raise DatasetError(
-                        f"unknown obj_id {gt.obj_id}: not in models_info.json",
-                        path=src / gt_file,
-                        field=f"{im_id}/{gt_id}/obj_id",
-                    )
-    targets = {p.name: load_json(p) for p in sorted(src.glob("test_targets*.json"))}
-    for name, content in targets.items():
-        # BOP19 targets name an object; BOP24 ones (per image) name none and stay as they are.
-        if not isinstance(content, list) or not all(
-            isinstance(t, dict) and isinstance(t.get("obj_id", 0), int) for t in content
-        ):
-            raise DatasetError("expected a list of targets with integer obj_id", path=src / name)
+    gts = _load_scene_gts(src, splits, set(ids))  # validated before anything is written
+    targets = _load_targets(src)
     cocos = {
         path.relative_to(src): load_json(path)
         for split in splits
@@ -424,16 +466,7 @@ def import_bop_renumbered(
     with atomic_folder(out) as tmp:
         shutil.copytree(src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".*.tmp-*"))
         for d in model_dirs:
-            folder = tmp / d.name
-            moved = {}
-            for i in ids:  # two steps, so that obj 0 -> 1 does not overwrite obj 1 -> 2
-                old = model_path(folder, i)
-                if old.is_file():
-                    moved[i] = old.rename(old.with_name(f".renumber-{old.name}"))
-            for i, path in moved.items():
-                path.rename(model_path(folder, new_id[i]))
-            info = {new_id[int(k)]: v for k, v in infos[d.name].items()}
-            save_json(folder / "models_info.json", info)
+            _renumber_models(tmp / d.name, infos[d.name], new_id)
         for gt_file, scene_gts in gts.items():
             renumbered = {
                 im_id: [GtPose(new_id[g.obj_id], g.R, g.t, g.extra) for g in items]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -32,7 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from bopsurg.atomic import atomic_folder, check_new_folder
-from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.dataset import BopDataset, BopScene
 from bopsurg.bop.images import load_depth, load_rgb, save_depth, save_rgb
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.bop.scene import CameraInfo, GtPose, save_scene_camera, save_scene_gt
@@ -147,6 +148,33 @@ class MirrorReport:
     instances: int
 
 
+def _mirror_scene(
+    scene: BopScene, dst: Path, reflection: Callable[[int], PlaneReflection]
+) -> dict[int, list[GtPose]]:
+    """Write the mirror image of one scene into ``dst``: RGB and depth mirrored column for
+    column, the cameras (K, depth scale; no world pose) and the mirrored GT poses, which are
+    returned (image id → instances)."""
+    cams: dict[int, CameraInfo] = {}
+    gts: dict[int, list[GtPose]] = {}
+    for im_id in scene.im_ids:
+        cam = scene.camera[im_id]
+        cx = float(cam.K[0, 2])
+        rgb_path = scene.rgb_path(im_id)
+        save_rgb(dst / "rgb" / rgb_path.name, _mirror_image(load_rgb(rgb_path), cx))
+        depth_path = scene.depth_path(im_id)
+        if depth_path.is_file():
+            depth = _mirror_image(load_depth(depth_path), cx)
+            save_depth(dst / "depth" / depth_path.name, depth)
+        cams[im_id] = CameraInfo(cam.K, cam.depth_scale, extra=cam.extra)
+        gts[im_id] = [
+            GtPose(g.obj_id, *reflection(g.obj_id).pose(g.R, g.t), extra=g.extra)
+            for g in scene.gt.get(im_id, [])
+        ]
+    save_scene_camera(dst / "scene_camera.json", cams)
+    save_scene_gt(dst / "scene_gt.json", gts)
+    return gts
+
+
 def mirror_split(
     root: str | Path,
     out: str | Path,
@@ -204,27 +232,9 @@ def mirror_split(
             elif f.is_dir() and f.name.startswith("models"):
                 shutil.copytree(f, tmp / f.name)
         for scene in ds.iter_scenes():
-            dst = tmp / split / scene.scene_dir.name
-            cams: dict[int, CameraInfo] = {}
-            gts: dict[int, list[GtPose]] = {}
-            for im_id in scene.im_ids:
-                cam = scene.camera[im_id]
-                cx = float(cam.K[0, 2])
-                rgb_path = scene.rgb_path(im_id)
-                save_rgb(dst / "rgb" / rgb_path.name, _mirror_image(load_rgb(rgb_path), cx))
-                depth_path = scene.depth_path(im_id)
-                if depth_path.is_file():
-                    depth = _mirror_image(load_depth(depth_path), cx)
-                    save_depth(dst / "depth" / depth_path.name, depth)
-                cams[im_id] = CameraInfo(cam.K, cam.depth_scale, extra=cam.extra)
-                gts[im_id] = [
-                    GtPose(g.obj_id, *reflection(g.obj_id).pose(g.R, g.t), extra=g.extra)
-                    for g in scene.gt.get(im_id, [])
-                ]
-                images += 1
-                instances += len(gts[im_id])
-            save_scene_camera(dst / "scene_camera.json", cams)
-            save_scene_gt(dst / "scene_gt.json", gts)
+            gts = _mirror_scene(scene, tmp / split / scene.scene_dir.name, reflection)
+            images += len(gts)
+            instances += sum(len(g) for g in gts.values())
         annotate_dataset(tmp, split, renderer=renderer, delta=delta, progress=progress)
         record = {"source": str(root.resolve()), "split": split, "delta_mm": delta}
         (tmp / RECORD_NAME).write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")

@@ -233,6 +233,57 @@ def fit_circle(x: np.ndarray, y: np.ndarray, iterations: int = 50) -> tuple[floa
     return float(a), float(b), float(r)
 
 
+def _needle_points(model: ObjectModel | np.ndarray, name: str) -> np.ndarray:
+    """The (V, 3) float64 vertices of ``model``, checked: at least 10, all finite."""
+    pts = np.asarray(model.pts if isinstance(model, ObjectModel) else model, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 10 or not np.isfinite(pts).all():
+        raise ModelError(
+            f"not a needle: expected (V >= 10, 3) finite vertices, got {pts.shape}", path=name
+        )
+    return pts
+
+
+def _arc_span(angle: np.ndarray, name: str) -> tuple[float, float]:
+    """``(start, extent)``, rad, of the arc the vertices' in-plane angles cover: the circle
+    minus the largest angular gap between them, starting after that gap."""
+    theta = np.sort(np.mod(angle, 2 * np.pi))
+    gaps = np.diff(np.concatenate([theta, theta[:1] + 2 * np.pi]))
+    k = int(np.argmax(gaps))
+    start = float(theta[(k + 1) % len(theta)])  # first angle after the largest gap
+    extent = 2 * np.pi - float(gaps[k])
+    extent_deg = float(np.rad2deg(extent))
+    if not MIN_EXTENT_DEG <= extent_deg <= MAX_EXTENT_DEG:
+        raise ModelError(
+            f"not a needle: its arc spans {extent_deg:.0f}°, expected "
+            f"{MIN_EXTENT_DEG:.0f}–{MAX_EXTENT_DEG:.0f}° (an open arc with a tip and a tail)",
+            path=name,
+        )
+    return start, extent
+
+
+def _tip_at_far_end(
+    angle: np.ndarray, start: float, extent: float, tube: np.ndarray, name: str
+) -> bool:
+    """Whether the tip (the end where the wire tapers: the thinner one) is at ``start +
+    extent`` rather than at ``start``; ``tube`` is each vertex's distance from the arc, mm."""
+    # Angle of every vertex along the arc, 0 at the start end, extent at the other.
+    along = np.mod(angle - start, 2 * np.pi)
+    along = np.where(along > extent + 1e-9, along - 2 * np.pi, along)  # round-off at start
+    band = _END_FRACTION * extent
+    near_start, near_end = along < band, along > extent - band
+    if not near_start.any() or not near_end.any():
+        raise ModelError("not a needle: too few vertices near its ends", path=name)
+    thick_start = float(np.median(tube[near_start]))
+    thick_end = float(np.median(tube[near_end]))
+    if min(thick_start, thick_end) > _TAPER_RATIO * max(thick_start, thick_end):
+        raise ModelError(
+            "not a needle: neither end tapers to a point, so the tip cannot be told from the "
+            f"tail (wire radius {thick_start:.3g} mm at one end, {thick_end:.3g} mm at the other)",
+            path=name,
+        )
+    return thick_end < thick_start
+
+
 def fit_needle(model: ObjectModel | np.ndarray, *, name: str = "model") -> NeedleArc:
     """Fit the arc of a curved suturing needle to a mesh's vertices, in its model frame.
 
@@ -252,11 +303,7 @@ def fit_needle(model: ObjectModel | np.ndarray, *, name: str = "model") -> Needl
         ModelError: The points are not a needle: not flat, not on a circle, a tube too thick
             for its arc, an arc too short or a closed ring, or neither end tapers.
     """
-    pts = np.asarray(model.pts if isinstance(model, ObjectModel) else model, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 10 or not np.isfinite(pts).all():
-        raise ModelError(
-            f"not a needle: expected (V >= 10, 3) finite vertices, got {pts.shape}", path=name
-        )
+    pts = _needle_points(model, name)
     mean = pts.mean(axis=0)
     _, sv, vt = np.linalg.svd(pts - mean, full_matrices=False)
     normal = vt[2]
@@ -281,34 +328,10 @@ def fit_needle(model: ObjectModel | np.ndarray, *, name: str = "model") -> Needl
             f"is under {MAX_TUBE_FRACTION:.0%} of its radius)",
             path=name,
         )
-    theta = np.sort(np.mod(np.arctan2(dy, dx), 2 * np.pi))
-    gaps = np.diff(np.concatenate([theta, theta[:1] + 2 * np.pi]))
-    k = int(np.argmax(gaps))
-    start = theta[(k + 1) % len(theta)]  # first angle after the largest gap
-    extent = 2 * np.pi - float(gaps[k])
+    angle = np.arctan2(dy, dx)
+    start, extent = _arc_span(angle, name)
     extent_deg = float(np.rad2deg(extent))
-    if not MIN_EXTENT_DEG <= extent_deg <= MAX_EXTENT_DEG:
-        raise ModelError(
-            f"not a needle: its arc spans {extent_deg:.0f}°, expected "
-            f"{MIN_EXTENT_DEG:.0f}–{MAX_EXTENT_DEG:.0f}° (an open arc with a tip and a tail)",
-            path=name,
-        )
-    # Angle of every vertex along the arc, 0 at the start end, extent at the other.
-    along = np.mod(np.arctan2(dy, dx) - start, 2 * np.pi)
-    along = np.where(along > extent + 1e-9, along - 2 * np.pi, along)  # round-off at start
-    band = _END_FRACTION * extent
-    near_start, near_end = along < band, along > extent - band
-    if not near_start.any() or not near_end.any():
-        raise ModelError("not a needle: too few vertices near its ends", path=name)
-    thick_start = float(np.median(tube[near_start]))
-    thick_end = float(np.median(tube[near_end]))
-    if min(thick_start, thick_end) > _TAPER_RATIO * max(thick_start, thick_end):
-        raise ModelError(
-            "not a needle: neither end tapers to a point, so the tip cannot be told from the "
-            f"tail (wire radius {thick_start:.3g} mm at one end, {thick_end:.3g} mm at the other)",
-            path=name,
-        )
-    tip_at_end = thick_end < thick_start
+    tip_at_end = _tip_at_far_end(angle, start, extent, tube, name)
     centre = mean + a * u + b * v
     ends = start + np.array([0.0, extent])
     end_pts = centre + radius * (np.cos(ends)[:, None] * u + np.sin(ends)[:, None] * v)

@@ -13,6 +13,7 @@ The core only ever reaches a plugin through :func:`load_plugin`, never by import
 from __future__ import annotations
 
 import logging
+import sys
 from importlib.metadata import EntryPoint, entry_points
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -35,6 +36,18 @@ GROUPS: dict[str, str] = {
 }
 #: Former group names still searched (with a deprecation warning), by current group.
 DEPRECATED_GROUPS: dict[str, str] = {"bopsurg.render_backends": "bopsurg.generators"}
+#: The extra that brings the built-in plugin of each kind.
+PLUGIN_EXTRAS: dict[str, str] = {
+    "renderer": "bopsurg[vsd]",
+    "backend": "bopsurg[sim]",
+    "estimator": "bopsurg[torch]",
+}
+#: The extra that brings each optional module a built-in plugin imports.
+MODULE_EXTRAS: dict[str, str] = {
+    "pybullet": "bopsurg[vsd]",
+    "rosbags": "bopsurg[sim]",
+    "torch": "bopsurg[torch]",
+}
 
 
 @runtime_checkable
@@ -105,7 +118,7 @@ def load_plugin(kind: str, name: str | None = None) -> Any:
     if not plugins:
         raise BopsurgError(
             f"no {kind} plugin is installed (group {GROUPS[kind]!r}); "
-            "install bopsurg[sim] for the built-in PyBullet one"
+            f"install {PLUGIN_EXTRAS.get(kind, 'bopsurg[all]')} for the built-in one"
         )
     if name is None:
         name = sorted(plugins)[0]
@@ -114,4 +127,20 @@ def load_plugin(kind: str, name: str | None = None) -> Any:
     try:
         return plugins[name].load()
     except ImportError as err:
-        raise BopsurgError(f"{kind} plugin {name!r} cannot be imported: {err}") from err
+        hint = install_hint(err.name) if err.name else ""
+        raise BopsurgError(f"{kind} plugin {name!r} cannot be imported: {err}{hint}") from err
+
+
+def install_hint(module: str) -> str:
+    """``"; pip install 'bopsurg[EXTRA]'"`` for an optional module (with pybullet's Python
+    versions: it ships wheels for CPython 3.10 and 3.11 only), or ``""``."""
+    extra = MODULE_EXTRAS.get(module.partition(".")[0])
+    if extra is None:
+        return ""
+    hint = f"; pip install '{extra}'"
+    if module.startswith("pybullet") and sys.version_info >= (3, 12):
+        hint += (
+            " (pybullet has wheels for Python 3.10 and 3.11 only: on this Python pip builds it "
+            "from source, which needs a C++ compiler and the Python headers)"
+        )
+    return hint

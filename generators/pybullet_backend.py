@@ -57,7 +57,7 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -84,7 +84,9 @@ from bopsurg.generators.pybullet_scene import (
 )
 from bopsurg.metrics.point_subsets import hull_vertices
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # typing.Self is Python 3.11+; annotations are not evaluated at run time
+    from typing_extensions import Self
+
     from bopsurg.generators.domain import Appearance
     from bopsurg.generators.pybullet_domain import ThreadBodies
 

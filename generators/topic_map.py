@@ -18,7 +18,7 @@ of at least one arm mandatory.
 from __future__ import annotations
 
 import math
-import tomllib
+import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +27,11 @@ from typing import Any
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from bopsurg.errors import InputError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10: the backport (bopsurg[sim] installs it there), same API
+    import tomli as tomllib
 
 STREAMS = ("psm_joints", "jaw", "psm_pose", "ecm_joints", "needle_pose", "meta")
 _PER_ARM = ("psm_joints", "jaw", "psm_pose")

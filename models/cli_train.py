@@ -96,7 +96,7 @@ examples:
       --init models/weights/pose.pt --epochs 6 --lr 3e-4     # fine-tune on two splits
   bopsurg train pose data/needle --out runs/pose_gpu --preset paper --device cuda
   bopsurg train seg data/needle --split train,train_wide --out runs/seg --preset amodal \\
-      --config bench/recipes/seg.yaml                       # the shipped segmenter's recipe
+      --config bopsurg/recipes/seg.yaml                       # the shipped segmenter's recipe
   bopsurg train ends data/needle --out runs/ends --set recipe.margin=3
   bopsurg predict data/needle --split test --out results.csv \\
       --detector runs/det/detector.pt --pose runs/pose/pose.pt

@@ -32,10 +32,10 @@ SHIPPED_FILES = {
 }
 #: How to get each weight file back (named in the error for a missing one).
 HOW_TO_GET = {
-    "detector": "bopsurg train detector --config bench/recipes/detector.yaml",
-    "pose": "bopsurg train pose --config bench/recipes/pose.yaml",
-    "segmenter": "bopsurg train seg --config bench/recipes/seg.yaml",
-    "ends": "bopsurg train ends --config bench/recipes/ends.yaml",
+    "detector": "bopsurg train detector DATA --out RUN",
+    "pose": "bopsurg train pose DATA --out RUN",
+    "segmenter": "bopsurg train seg DATA --out RUN --config $(bopsurg recipes --path seg)",
+    "ends": "bopsurg train ends DATA --out RUN --config $(bopsurg recipes --path ends)",
 }
 
 

@@ -24,11 +24,11 @@ import io
 import re
 import shlex
 import textwrap
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import tomllib
 import yaml
 
 from bopsurg.cli.commands import CORE

@@ -6,6 +6,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 from bopsurg.cli.commands import help_of
+from bopsurg.cli.progress import add_progress_arg
 from bopsurg.plugins import load_plugin
 
 if TYPE_CHECKING:
@@ -21,7 +22,7 @@ DESCRIPTION = """\
 Fill in what the BOP toolkit's calc_gt_masks.py and calc_gt_info.py compute, with the same
 definitions, headless and with no OpenGL install: every GT instance is rendered alone at its
 GT pose (on a 3x canvas, so truncated parts count) by a depth renderer plugin (PyBullet's,
-from bopsurg[sim]), then
+from bopsurg[vsd]), then
 
   mask/IM_GT.png          amodal silhouette inside the image
   mask_visib/IM_GT.png    visible part: (d_model - d_test <= delta) or no depth, bop19 rule
@@ -54,7 +55,7 @@ def register(sub: Subparsers) -> None:
     p.add_argument("--renderer", default=None, help="depth renderer plugin (default: first)")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="redo scenes already annotated")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_progress_arg(p)
     p.set_defaults(func=run)
 
 

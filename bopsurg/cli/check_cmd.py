@@ -6,6 +6,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 from bopsurg.cli.commands import help_of
+from bopsurg.cli.progress import add_progress_arg
 
 if TYPE_CHECKING:
     from bopsurg.cli.commands import Subparsers
@@ -52,6 +53,7 @@ def register(sub: Subparsers) -> None:
     p.add_argument(
         "--max-problems", type=int, default=None, metavar="N", help="stop after N problems"
     )
+    add_progress_arg(p)
     p.set_defaults(func=run)
 
 
@@ -65,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         split_type=args.split_type,
         check_images=not args.no_images,
         max_problems=args.max_problems,
-        progress=True,
+        progress=not args.no_progress,
         dataset=args.dataset_name,
     )
     for problem in problems:

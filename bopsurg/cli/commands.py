@@ -87,6 +87,11 @@ CORE: tuple[Command, ...] = (
         "write the embedded example: a needle BOP dataset and a results CSV",
         "bopsurg.cli.example_cmd",
     ),
+    Command(
+        "recipes",
+        "list the shipped training recipes (bopsurg train --config), print one or its path",
+        "bopsurg.cli.recipes_cmd",
+    ),
 )
 
 #: Help lines of the built-in plugin commands (the same as their modules' ``HELP``; a test
@@ -222,6 +227,9 @@ def run_command(name: str, **values: Any) -> int:
     if unknown:
         raise BopsurgError(f"'bopsurg {name}' has no option(s) {unknown}")
     vars(args).update(values)
+    from bopsurg.cli.progress import apply_progress_policy
+
+    apply_progress_policy(args)
     missing = [a.dest for a in parser._actions if a.required and getattr(args, a.dest) is None]
     if missing:
         raise BopsurgError(f"'bopsurg {name}' needs {missing}")

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from bopsurg.cli.commands import help_of, run_command
 from bopsurg.cli.example_cmd import spec, spec_args
+from bopsurg.cli.progress import add_progress_arg
 from bopsurg.errors import BopsurgError
 from bopsurg.plugins import available_plugins
 
@@ -75,6 +76,7 @@ def register(sub: Subparsers) -> None:
     d.add_argument("--replays", type=int, default=3, help="viewpoint replays per episode (3)")
     d.add_argument("--device", default="auto", help="device of the estimator (default: auto)")
     spec_args(d)
+    add_progress_arg(d)
     d.set_defaults(func=run_demo)
 
 
@@ -140,6 +142,7 @@ def run_demo(args: argparse.Namespace) -> int:
         replays=args.replays,
         seed=1000 * args.seed + DEMO_VIEW_SEED,
         workers=max(1, min(2, os.cpu_count() or 1)),
+        no_progress=args.no_progress,
     )
     results = out / "results.csv"
     print(f"[3/4] predict with the shipped detector + pose head -> {results}")
@@ -151,9 +154,10 @@ def run_demo(args: argparse.Namespace) -> int:
         out=str(results),
         device=args.device,
         detections_out=detections,
+        no_progress=args.no_progress,
     )
     print("[4/4] evaluate\n")
-    _eval(data, results, out, "test", detections=detections)
+    _eval(data, results, out, "test", detections=detections, no_progress=args.no_progress)
     _detector_ap(data, out)
     print(f"\ndemo done in {time.perf_counter() - t0:.0f} s")
     _print_rerun_hint(out)
@@ -192,9 +196,9 @@ def _run_example(args: argparse.Namespace, out: Path) -> int:
     ex = write_example_dataset(out / "data", spec(args))
     print(f"[1/3] example dataset: {ex.root}\n      results: {ex.results}")
     print("[2/3] bopsurg check")
-    _step("check", dataset=str(ex.root), split=ex.split)
+    _step("check", dataset=str(ex.root), split=ex.split, no_progress=args.no_progress)
     print("[3/3] bopsurg eval\n")
-    _eval(ex.root, ex.results, out, ex.split)
+    _eval(ex.root, ex.results, out, ex.split, no_progress=args.no_progress)
     _print_rerun_hint(out)
     return 0
 

@@ -17,6 +17,7 @@ from bopsurg.cli.inputs import (
     load_dataset_and_results,
     load_detections_arg,
 )
+from bopsurg.cli.progress import add_progress_arg
 from bopsurg.errors import BopsurgError
 from bopsurg.evaluation.options import TASK_CHOICES
 from bopsurg.metrics.registry import METRICS, help_lines
@@ -83,11 +84,13 @@ def register(sub: Subparsers) -> None:
     )
     p.add_argument(
         "--task",
-        choices=TASK_CHOICES,
+        type=_task_list,
         default="all",
+        metavar="{" + ",".join(TASK_CHOICES) + "}",
         help="bop19 (6D localization AR), bop24 (6D detection AP, BOP 2023-2025) for a pose "
-        "CSV; coco-bbox, coco-segm (COCO AP via pycocotools) for a BOP COCO results JSON; "
-        "all (default: every task the results allow)",
+        "CSV; coco-bbox, coco-segm (COCO AP via pycocotools) for a BOP COCO results JSON "
+        "(.json or .json.gz); several joined by commas (bop19,bop24); all (default: every "
+        "task the results allow)",
     )
     p.add_argument(
         "--targets-bop24",
@@ -141,8 +144,20 @@ def register(sub: Subparsers) -> None:
         help="where MSSD, MSPD and ADD are computed: cpu (numpy), cuda (torch; same values to "
         "1e-9), auto (cuda for large batches when torch sees a GPU, else cpu; default)",
     )
-    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    add_progress_arg(p)
     p.set_defaults(func=run)
+
+
+def _task_list(text: str) -> str:
+    """``--task`` value: task names joined by commas, each one of ``TASK_CHOICES``."""
+    names = [t.strip() for t in text.split(",")]
+    unknown = [t for t in names if t not in TASK_CHOICES]
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown task(s) {', '.join(map(repr, unknown))}; choose from "
+            f"{', '.join(TASK_CHOICES)}, several joined by commas"
+        )
+    return ",".join(names)
 
 
 def _renderer(choice: str, dataset: BopDataset) -> DepthRenderer | None:
@@ -154,7 +169,7 @@ def _renderer(choice: str, dataset: BopDataset) -> DepthRenderer | None:
             log.info("AR_VSD skipped: not evaluated on %s", dataset.spec and dataset.spec.name)
             return None
         if not available_plugins("renderer"):
-            log.info("AR_VSD skipped: no depth renderer plugin installed (bopsurg[sim] has one)")
+            log.info("AR_VSD skipped: no depth renderer plugin installed (bopsurg[vsd] has one)")
             return None
         if not has_depth:
             log.info("AR_VSD skipped: the dataset has no depth images")
@@ -239,7 +254,8 @@ def run(args: argparse.Namespace) -> int:
     }
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
-    write_intervals(result.gt_rows, det, args, result.curves)  # intervals, compare's samples
+    curves = result.curves if "bop19" in tasks else None  # BOP19 keys only with its task
+    write_intervals(result.gt_rows, det, args, curves)  # intervals, compare's samples
     if args.figures:
         from bopsurg.viz.figures import figures_of_evaluation
 

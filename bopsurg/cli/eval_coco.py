@@ -32,7 +32,8 @@ def run_coco(args: argparse.Namespace) -> int:
         present.append("coco-bbox")
     if any(r.get("segmentation") for r in results):
         present.append("coco-segm")
-    tasks = resolve_tasks(args.task, "coco", present if args.task == "all" else None)
+    every = "all" in args.task.split(",")  # what the file holds; a named task must be there
+    tasks = resolve_tasks(args.task, "coco", present if every else None)
     targets = load_image_targets(args.targets_bop24) if args.targets_bop24 else None
     scores, samples = evaluate_coco_samples(dataset, results, tasks, targets)
     out = Path(args.out)

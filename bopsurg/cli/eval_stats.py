@@ -43,6 +43,9 @@ def write_intervals(
     (BOP19 ARs from ``curves``, BOP24/BOP25 keys) and print the intervals."""
     out = Path(args.out)
     samples = DetectionSamples.from_evaluation(det) if det is not None else None
+    # none of an earlier run into the same folder: compare must not read another task's samples
+    (out / SAMPLES_FILENAME).unlink(missing_ok=True)
+    (out / BOP19_SAMPLES_FILENAME).unlink(missing_ok=True)
     if samples is not None:
         samples.save(out / SAMPLES_FILENAME)
     if curves:
@@ -72,7 +75,7 @@ def write_intervals(
         )
     )
     scores_ci: dict[str, tuple[float, float]] = {}
-    if curves:
+    if curves:  # (given only when the BOP19 task ran: its keys are in scores.json)
         bop19_ci = bop19_intervals(curves, args.bootstrap, seed=args.seed, unit=args.ci_unit)
         scores = json.loads((out / "scores.json").read_text())
         print("  BOP19 6D localization:")

@@ -6,6 +6,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 from bopsurg.cli.commands import help_of
+from bopsurg.cli.progress import add_progress_arg
 
 if TYPE_CHECKING:
     from bopsurg.cli.commands import Subparsers
@@ -34,7 +35,7 @@ folder and appears only when complete: bad or partial input leaves nothing behin
                   numbers its needle 0): a copy with every obj_id shifted by --obj-id-offset;
                   scenes without scene_gt_info.json are annotated.
 
-Masks need the depth renderer plugin (pip install 'bopsurg[sim]').
+Masks need the depth renderer plugin (pip install 'bopsurg[vsd]').
 """
 
 EPILOG = """\
@@ -83,7 +84,7 @@ def register(sub: Subparsers) -> None:
         "BOP's 15 would count tissue a few mm in front of the needle as not occluding)",
     )
     p.add_argument("--renderer", default=None, help="depth renderer plugin (default: first)")
-    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    add_progress_arg(p)
     p.set_defaults(func=run)
 
 

@@ -12,10 +12,11 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from bopsurg._version import __version__
 from bopsurg.cli.commands import add_commands, selected_command
+from bopsurg.cli.progress import apply_progress_policy
 from bopsurg.errors import BopsurgError
 
 DESCRIPTION = """\
@@ -56,7 +57,13 @@ def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
     return parser
 
 
-class _CurrentStderr(logging.StreamHandler[TextIO]):
+if TYPE_CHECKING:
+    _StreamHandler = logging.StreamHandler[TextIO]
+else:  # subscriptable at run time from Python 3.11 only
+    _StreamHandler = logging.StreamHandler
+
+
+class _CurrentStderr(_StreamHandler):
     """Writes each record to ``sys.stderr`` as it is when the record is emitted: a program
     that swaps ``sys.stderr`` after calling :func:`main` (pytest's capture, a notebook)
     keeps getting the log, never a closed stream's error."""
@@ -75,6 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"bopsurg: error: {err}", file=sys.stderr)
         return 2
     args = parser.parse_args(argv)
+    apply_progress_policy(args)
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(
         level=level, format="%(levelname)s: %(message)s", handlers=[_CurrentStderr()], force=True

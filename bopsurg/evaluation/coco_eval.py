@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import gzip
 import io
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -47,17 +49,22 @@ EVALUATIONS: dict[str, tuple[tuple[str, str, str | None], ...]] = {
     "coco-bbox": (("bbox", "bbox", "amodal"), ("bbox_modal", "bbox", "modal")),
     "coco-segm": (("segm", "segm", None),),
 }
+_GZIP_MAGIC = b"\x1f\x8b"
+_UTF8_BOM = b"\xef\xbb\xbf"  # spreadsheets and some editors write one; load_json drops it
 
 
 def is_coco_results(path: str | Path) -> bool:
-    """Whether a results file is a BOP COCO results JSON (by content: a JSON array), not a
-    pose CSV."""
+    """Whether a results file is a BOP COCO results JSON (by content: a JSON array, plain or
+    gzip-compressed as ``.json.gz``, how BOP challenge submissions ship), not a pose CSV."""
     try:
         with open(path, "rb") as f:
-            head = f.read(256).lstrip()
-    except OSError:
+            compressed = f.read(2) == _GZIP_MAGIC
+            f.seek(0)
+            with gzip.open(f) if compressed else contextlib.nullcontext(f) as raw:
+                head = raw.read(256)
+    except (OSError, EOFError, zlib.error):
         return False  # the results loader reports the unreadable file
-    return head.startswith(b"[")
+    return head.removeprefix(_UTF8_BOM).lstrip().startswith(b"[")
 
 
 def load_coco_results(path: str | Path) -> list[dict[str, Any]]:

@@ -34,20 +34,31 @@ def resolve_tasks(
     """The tasks to run for ``--task choice`` on results of ``results_kind`` (``"pose"`` or
     ``"coco"``); ``allowed`` narrows the kind's tasks to what the results contain.
 
+    ``choice`` is one task name, several joined by commas (``"bop19,bop24"``), or ``"all"``;
+    the tasks come back in report order, each once.
+
     Raises:
-        BopsurgError: The task does not apply to these results.
+        BopsurgError: A task is unknown or does not apply to these results.
     """
     if allowed is None:
         allowed = POSE_TASKS if results_kind == "pose" else COCO_TASKS
     allowed = tuple(allowed)
-    if choice in (None, "all"):
-        return allowed
-    if choice not in allowed:
+    chosen = [t.strip() for t in (choice or "all").split(",") if t.strip()]
+    unknown = [t for t in chosen if t not in TASK_CHOICES]
+    if unknown or not chosen:
         raise BopsurgError(
-            f"--task {choice} needs other results: a {results_kind} results file allows "
-            f"{', '.join(allowed) or 'no task'}"
+            f"--task {choice!r}: unknown task {', '.join(unknown) or '(none)'}; "
+            f"choose from {', '.join(TASK_CHOICES)} (several joined by commas)"
         )
-    return (choice,)
+    if "all" in chosen:
+        return allowed
+    refused = [t for t in chosen if t not in allowed]
+    if refused:
+        raise BopsurgError(
+            f"--task {','.join(refused)} needs other results: a {results_kind} results file "
+            f"allows {', '.join(allowed) or 'no task'}"
+        )
+    return tuple(t for t in allowed if t in chosen)
 
 
 def add_detection_scores(

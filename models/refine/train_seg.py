@@ -1,6 +1,6 @@
 """Train the needle segmenter (:mod:`.seghead`) on a BOP split's visible (and full) masks.
 
-    bopsurg train seg DATASET --out runs/seg --seed 0 [--config bench/recipes/seg.yaml]
+    bopsurg train seg DATASET --out runs/seg --seed 0 [--config bopsurg/recipes/seg.yaml]
 
 Per GT needle instance (visib_fract >= ``recipe.min_visib``) a native-resolution context
 around its visible box (with ``seg.frame: whole``: that box grown to the full mask's box, the

@@ -13,6 +13,7 @@ from bopsurg.bop.targets import load_image_targets
 from bopsurg.cli.main import main
 
 pytest.importorskip("pybullet")
+pytest.importorskip("rosbags")  # the bags it generates from are recorded first
 
 
 @pytest.fixture(scope="module")

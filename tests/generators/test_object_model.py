@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytest.importorskip("rosbags")  # bopsurg[sim]: the bag writer these tests record with
+
 from bopsurg.bop.check import check_dataset
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask

@@ -221,7 +221,7 @@ def test_a_pose_run_from_before_the_mirror_resumes(tmp_path):
     assert (recipe["mirror"], recipe["roll"]) == (0.0, 0.0)
 
 
-RECIPES = sorted((Path(__file__).parents[2] / "bench" / "recipes").glob("*.yaml"))
+RECIPES = sorted((Path(__file__).parents[2] / "bopsurg" / "recipes").glob("*.yaml"))
 
 
 @pytest.mark.parametrize("recipe", RECIPES, ids=lambda p: p.name)

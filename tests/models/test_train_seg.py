@@ -176,7 +176,7 @@ def test_whole_frame_contexts_hold_the_full_mask(dataset, tmp_path):
 
 
 def test_the_recipe_of_the_shipped_segmenter_builds_its_network():
-    """bench/recipes/seg.yaml resolves to the shipped checkpoint's config, and the shipped
+    """bopsurg/recipes/seg.yaml resolves to the shipped checkpoint's config, and the shipped
     weights load into the network the trainer builds from it."""
     from pathlib import Path
 

@@ -306,8 +306,10 @@ def test_chunk_size_does_not_change_results(chunk: int) -> None:
     )
     for f in (add, adi):
         np.testing.assert_array_equal(f(*pairs, pts, chunk_size=chunk), f(*pairs, pts))
-    np.testing.assert_array_equal(
-        proj(*pairs, K_CAM, pts, chunk_size=chunk), proj(*pairs, K_CAM, pts)
+    # proj projects a block with one BLAS product whose rounding may depend on the block's
+    # rows (OpenBLAS of numpy 2.2, Python 3.10): equal to a few ulp, not bit for bit
+    np.testing.assert_allclose(
+        proj(*pairs, K_CAM, pts, chunk_size=chunk), proj(*pairs, K_CAM, pts), rtol=1e-13, atol=0
     )
 
 
