@@ -59,7 +59,7 @@ def test_the_recipe_of_the_shipped_classifier_builds_its_network():
     from bopsurg.models.refine.ends import EndConfig, EndNet
 
     out = io.StringIO()
-    recipe = ROOT / "bench" / "recipes" / "ends.yaml"
+    recipe = ROOT / "bopsurg" / "recipes" / "ends.yaml"
     with contextlib.redirect_stdout(out):
         assert main(["train", "ends", "--config", str(recipe), "--dump-config"]) == 0
     conf = yaml.safe_load(out.getvalue())

@@ -184,7 +184,7 @@ def test_the_recipe_of_the_shipped_segmenter_builds_its_network():
     from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
 
     root = Path(__file__).resolve().parents[2]
-    recipe = root / "bench" / "recipes" / "seg.yaml"
+    recipe = root / "bopsurg" / "recipes" / "seg.yaml"
     conf = _dump(["train", "seg", "--config", str(recipe), "--dump-config"])
     state, info = _weights(root / "models" / "weights" / "needle_seg.pt")
     assert conf["seg"] == info["config"]
