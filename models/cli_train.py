@@ -224,9 +224,10 @@ def run(args: argparse.Namespace) -> int:
         )
     conf = resolve(args, len(obj_ids) if obj_ids else 1)
     if args.dump_config:
-        from bopsurg.models.run_config import dump_yaml, resolved
+        from bopsurg.models.config_tree import to_yaml
+        from bopsurg.models.run_config import resolved
 
-        print(dump_yaml(resolved(args.model, *conf)), end="")
+        print(to_yaml(resolved(args.model, *conf)), end="")
         return 0
     if not args.dataset or not args.out:
         raise BopsurgError("the dataset and --out are required (except with --dump-config)")

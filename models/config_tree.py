@@ -109,21 +109,24 @@ def _reason(err: dacite.DaciteFieldError) -> str:
     return msg.split(" - ", 1)[1] if " - " in msg else msg
 
 
+def to_plain(obj: Any) -> Any:
+    """A dataclass or nested value as plain YAML/JSON data (tuples become lists), fields in
+    their order."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {k: to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_plain(v) for v in obj]
+    return obj
+
+
 def to_dict(tree: Any) -> dict[str, Any]:
-    """The tree as plain YAML-ready data (tuples as lists)."""
-
-    def plain(v: Any) -> Any:
-        if isinstance(v, tuple | list):
-            return [plain(x) for x in v]
-        if isinstance(v, dict):
-            return {k: plain(x) for k, x in v.items()}
-        return v
-
-    out: dict[str, Any] = plain(dataclasses.asdict(tree))
+    """A tree (a dataclass) as plain YAML-ready data."""
+    out: dict[str, Any] = to_plain(tree)
     return out
 
 
 def to_yaml(tree: Any) -> str:
-    """The resolved tree as YAML, in field order (a valid ``--config`` file)."""
-    text: str = yaml.safe_dump(to_dict(tree), sort_keys=False, default_flow_style=None)
-    return text
+    """A tree, or a mapping of trees, as YAML in field order (a valid ``--config`` file)."""
+    return str(yaml.safe_dump(to_plain(tree), sort_keys=False, default_flow_style=None))

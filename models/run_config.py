@@ -28,7 +28,6 @@ file that reproduces the run.
 from __future__ import annotations
 
 import dataclasses
-import json
 import types
 import typing
 from dataclasses import dataclass
@@ -38,7 +37,9 @@ from typing import Any, TypeVar
 import yaml
 
 from bopsurg.errors import BopsurgError
+from bopsurg.models.config_tree import to_plain, to_yaml
 from bopsurg.models.photometric import PhotometricConfig
+from bopsurg.options import nest, read_mapping
 
 #: The model sections: each names the model a run trains (one per run).
 MODEL_SECTIONS = ("detector", "pose", "seg", "ends")
@@ -96,20 +97,9 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as err:
-        raise BopsurgError(f"--config {p}: cannot read ({err.strerror})") from err
-    try:
-        data = json.loads(text) if p.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (yaml.YAMLError, json.JSONDecodeError) as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise BopsurgError(f"--config {p}: not valid YAML/JSON ({first})") from err
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise BopsurgError(
-            f"--config {p}: expected a mapping of sections, got {type(data).__name__}"
-        )
+        data = read_mapping(p)  # YAML is a superset of JSON
+    except BopsurgError as err:
+        raise BopsurgError(f"--config {err}") from err
     for key in data:
         if key not in SECTIONS:
             raise BopsurgError(
@@ -223,37 +213,18 @@ def apply_overrides(data: dict[str, Any], items: list[str], where: str = "--set"
             value = yaml.safe_load(text)
         except yaml.YAMLError:
             raise BopsurgError(f"{where} {item!r}: the value is not valid YAML") from None
-        section, dot, field_name = key.partition(".")
+        section = key.partition(".")[0]
         if section not in SECTIONS:
             raise BopsurgError(
                 f"{where} {item!r}: unknown section {section!r} (sections: {', '.join(SECTIONS)})"
             )
-        if not dot:
-            out[section] = value
-            continue
-        current = out.get(section)
-        if current is None:
-            current = out[section] = {}
-        if not isinstance(current, dict):
+        if isinstance(out.get(section), dict) or "." not in key:
+            out = nest([(key, value)], out)
+        elif out.get(section) is None:
+            out = nest([(key, value)], {**out, section: {}})
+        else:
             raise BopsurgError(f"{where} {item!r}: {section} is not a section of fields")
-        current[field_name] = value
     return out
-
-
-def to_plain(obj: Any) -> Any:
-    """A dataclass or nested value as plain YAML/JSON data (tuples become lists)."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, dict):
-        return {k: to_plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [to_plain(v) for v in obj]
-    return obj
-
-
-def dump_yaml(resolved: dict[str, Any]) -> str:
-    """The resolved configuration as YAML text (sections in :data:`SECTIONS` order)."""
-    return str(yaml.safe_dump(to_plain(resolved), sort_keys=False, default_flow_style=None))
 
 
 def resolved(
@@ -276,5 +247,5 @@ def write_config(out: str | Path, config: dict[str, Any]) -> Path:
 
     path = Path(out) / "config.yaml"
     header = "# the resolved configuration of this run (bopsurg train ... --config this file)\n"
-    write_text(path, header + dump_yaml(config))
+    write_text(path, header + to_yaml(config))
     return path
