@@ -125,8 +125,7 @@ class GdrNetEstimator:
         R, t = self.head(image, K_t, box_xywh)
         bbox_out = np.array(found.bbox, dtype=np.float64, copy=True)
         if self.head.obj_id == NEEDLE_OBJ_ID:
-            R, t, bbox_out = self._needle_stages(image, K, K_t, box_xywh, HeadPoses(R, t), depth)
-            bbox_out = np.where(np.isnan(bbox_out), found.bbox, bbox_out)
+            R, t = self._needle_stages(image, K, K_t, box_xywh, HeadPoses(R, t), depth, bbox_out)
         return PosePredictions(found.obj_id, found.score, R, t, bbox_out)
 
     def _needle_stages(
@@ -137,11 +136,11 @@ class GdrNetEstimator:
         box_xywh: torch.Tensor,
         poses: HeadPoses,
         depth: np.ndarray | None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Refinement and end check of needle poses: R, t mm, and the BOP boxes (n, 4) of the
-        re-cropped ROIs (NaN rows: the detection's box)."""
+        bbox: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Refinement and end check of needle poses: R, t mm; the BOP boxes ``bbox`` (n, 4) of
+        re-cropped ROIs are set to the grown boxes in place."""
         R, t = poses
-        boxes = np.full((len(R), 4), np.nan)
         unheld = np.zeros(len(R), dtype=bool)
         if self.refine is not None:
             ref = self.refine(
@@ -153,10 +152,10 @@ class GdrNetEstimator:
                 depth=depth if self.uses_depth else None,
             )
             R, t, unheld = ref.R, ref.t, ref.unheld
-            boxes[ref.grown] = ref.boxes[ref.grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
+            bbox[ref.grown] = ref.boxes[ref.grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
         if self.ends is not None:
             R = self.ends(image, K, R, t, unheld)
-        return R, t, boxes
+        return R, t
 
 
 def create(options: Mapping[str, Any]) -> GdrNetEstimator:
