@@ -7,24 +7,39 @@ provably do not change the value:
 
 1. **Convex hull** (MSSD only). ``x ↦ ‖(R_e x + t_e) − (R_g R_s x + R_g t_s + t_g)‖`` is convex,
    so its maximum over the vertices is attained at a vertex of their convex hull (Qhull; all
-   vertices when the hull is degenerate, or when there are too few evaluations to pay for it).
-   MSPD's projected distance is not convex, so MSPD evaluates all vertices.
+   vertices when the hull is degenerate, when there are too few evaluations to pay for it, or
+   when a 500-point probe finds more than a quarter of the vertices on the hull: Qhull's time
+   grows with the hull, ≈ 10 ms for a thin 5,000-vertex needle, and the hull would only halve
+   the vertices). MSPD's projected distance is not convex, so MSPD evaluates all vertices.
 2. **Branch and bound over symmetries.** The maximum over a subset of vertices is a lower bound
    of the maximum over all of them. Bounds are computed for every (pose, symmetry) from 4
-   extreme vertices, refined with 32 for the most promising symmetries; then, per pose,
-   symmetries are evaluated in full in increasing order of their bound until the next bound is
-   not below the best value found. After each full evaluation the maximising vertex tightens
-   the bounds of the remaining candidates. All poses advance together, in rounds (numpy
-   operations over all active poses; no Python loop over poses or vertices).
-3. **Final value by the reference's formula.** The search uses cheaper equivalent forms
-   (``[R_e − R_g R_s | t_e − t_g'] [x; 1]``; ``U · (1 / W)`` for ``U / W``); the returned value
-   is recomputed with the reference's direct difference formula at the maximising vertex of
-   the winning symmetry, so it equals the reference to float64 rounding (≤ 1e-9 relative;
-   absolute near 0).
+   extreme vertices; each pose evaluates its smallest bound's symmetry in full (MSPD first
+   refines the 8 smallest bounds with 32 vertices, as its full evaluations cost more). The
+   (pose, symmetry) pairs whose bound is below that value become a flat candidate list,
+   tightened with the maximising vertex, 32 extreme vertices and (MSSD, ≥ 1,024 vertices) an
+   evenly strided sample of 256; then, per pose, the candidate with the smallest bound is
+   evaluated in full until no bound is below the best value found, each new maximising vertex
+   tightening the bounds of the others. All poses advance together, in rounds (numpy
+   operations over all active candidates; no Python loop over poses or vertices).
+3. **The symmetry family** (MSSD). BOP's continuous symmetries are rotations about one axis,
+   so ``[R_s | t_s] = W0 + a_s E1 + b_s E2`` (detected by an SVD of the set with a residual
+   check, see :func:`symmetry_family`; other sets take the generic path). The squared
+   distance of a vertex is then ``[1, a, b, a², ab, b²] · f`` with 6 coefficients per (pose,
+   vertex), so the first bounds of all S symmetries are one (S × 6) matrix product.
+4. **Quadratic form** (MSSD). ``‖D [x; 1]‖² = q · m(x)`` with the 10 entries q of ``DᵀD`` and
+   the 10 monomials m(x) of the vertex, precomputed: a full evaluation is one 10-term product
+   per vertex instead of a 3×4 product and a sum of squares. ``D`` is formed from the
+   difference ``R_e − R_g R_s`` first, so the terms are of the size of the distance.
+5. **Final value by the reference's formula.** The search uses these cheaper equivalent forms
+   (and ``U · (1 / W)`` for ``U / W`` in MSPD); the returned value is recomputed with the
+   reference's direct difference formula at the maximising vertex of the winning symmetry, so
+   it equals the reference to float64 rounding (≤ 1e-9 relative; absolute near 0).
 
 Bounds are compared with a tolerance that exceeds any rounding difference between the forms
-(≈ 1e-13 mm, ≈ 1e-9 px), so a symmetry is only pruned if its exact value cannot be smaller; a
-near-tie can only change which of two equal (to rounding) values is returned.
+(MSSD in mm², from the sizes of the terms of each form; ≈ 1e-9 px for MSPD), so a symmetry is
+only pruned if its exact value cannot be smaller; a near-tie can only change which of two
+equal (to rounding) values is returned. Matrix products are issued in blocks of at most
+``SERIAL_MACS`` multiply-adds, which OpenBLAS runs on one thread (see there).
 
 **NaN/inf (MSPD).** Vertices on the camera plane (z = 0) project to inf/nan. The reference then
 returns NaN when its first (identity) term is NaN (``np.max`` propagates NaN; Python's ``min``
@@ -67,6 +82,8 @@ WORK = 1 << 16
 #: products are memory-bound, so threads gain little, and on a loaded machine waiting for a
 #: descheduled thread costs 10-100x.
 SERIAL_MACS = 1 << 19
+#: Vertices per block of MSSD's full evaluations.
+VERTEX_BLOCK = 1280
 #: MSSD computes the convex hull only for at least this many (pose, symmetry) evaluations.
 HULL_MIN_EVALS = 256
 #: ... and only if a probe says that at most this share of the vertices is on the hull.
@@ -101,22 +118,24 @@ def _rowwise_max(sq: F64) -> tuple[F64, I64]:
     return sq[np.arange(sq.shape[0]), j], j
 
 
+#: Index pairs (a ≤ b) of the 10 monomials of a homogeneous point, and their weight in ‖D X‖².
+_MONO_A, _MONO_B = np.triu_indices(4)
+_MONO_W = np.where(_MONO_A == _MONO_B, 1.0, 2.0)
+
+
 def _monomials(X_h: F64) -> F64:
     """The 10 products ``X_a X_b`` (a ≤ b) of homogeneous points (4, p), as (10, p) rows.
 
     With the matching entries of ``Dᵀ D`` (off-diagonal ones doubled, see :func:`_gram_rows`),
     ``‖D X‖² = q · monomials(X)``: one matrix product per set of (pose, symmetry) pairs.
     """
-    a, b = np.triu_indices(4)
-    result: F64 = X_h[a] * X_h[b]
+    result: F64 = X_h[_MONO_A] * X_h[_MONO_B]
     return result
 
 
 def _gram_rows(diff: F64) -> F64:
     """(k, 10) coefficients ``q`` of ``‖D X‖²`` for (k, 3, 4) matrices D (see _monomials)."""
-    a, b = np.triu_indices(4)
-    gram = np.einsum("kia,kib->kab", diff, diff)
-    result: F64 = gram[:, a, b] * np.where(a == b, 1.0, 2.0)
+    result: F64 = np.einsum("kit,kit->kt", diff[:, :, _MONO_A], diff[:, :, _MONO_B]) * _MONO_W
     return result
 
 
@@ -194,6 +213,12 @@ class _Common:
             self.mono = _monomials(self.X_ch)  # (10, H)
         self.mono_finite = bool(np.all(np.isfinite(self.mono)))
         self.levels_mono = [np.ascontiguousarray(self.mono[:, order[:m]]) for m in self.levels]
+        # Vertex blocks of the full evaluations: more pairs per single-threaded product and a
+        # cache-sized result.
+        self.mono_blocks = [
+            (v.start, np.ascontiguousarray(self.mono[:, v]))
+            for v in chunks(self.mono.shape[1], VERTEX_BLOCK)
+        ]
 
 
 class _Kernel:
@@ -332,24 +357,34 @@ class _Kernel3D(_Kernel):
         A[:, :, 3] = self.te[i] - t_gs
         return A
 
-    def _pairs_max(self, i: I64, s: I64, mono: F64) -> tuple[F64, I64]:
+    def _pairs_max(self, i: I64, s: I64, blocks: list[tuple[int, F64]]) -> tuple[F64, I64]:
+        """Maxima over the vertices of ``blocks`` ((offset, (10, w) monomials) each)."""
         q = _gram_rows(self._diff_mats(i, s))
-        p = mono.shape[1]
+        width = max(m.shape[1] for _, m in blocks)
         val, arg = np.empty(i.size), np.empty(i.size, dtype=np.int64)
-        kb = max(1, SERIAL_MACS // (10 * p))
-        buf = np.empty((min(kb, i.size), p))
+        kb = max(1, SERIAL_MACS // (10 * width))
+        buf = np.empty((min(kb, i.size), width))
         for b in chunks(i.size, kb):
-            val[b], arg[b] = _rowwise_max(np.matmul(q[b], mono, out=buf[: b.stop - b.start]))
+            k = b.stop - b.start
+            for off, m in blocks:
+                bv, bj = _rowwise_max(np.matmul(q[b], m, out=buf[:k, : m.shape[1]]))
+                if off == 0:
+                    val[b], arg[b] = bv, bj
+                    continue
+                # a NaN (overflow) must reach the result, as np.max would let it
+                up = (bv > val[b]) | np.isnan(bv)
+                val[b] = np.where(up, bv, val[b])
+                arg[b] = np.where(up, bj + off, arg[b])
         return val, arg
 
     def pairs_lb(self, i: I64, s: I64, level: int) -> F64:
-        return self._pairs_max(i, s, self.c.levels_mono[level])[0]
+        return self._pairs_max(i, s, [(0, self.c.levels_mono[level])])[0]
 
     def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
         if exact:  # the difference form, for coordinates whose squares overflow
             d = np.einsum("kij,jp->kip", self._diff_mats(i, s), self.c.X_ch)
             return _rowwise_max(np.einsum("kip,kip->kp", d, d))
-        return self._pairs_max(i, s, self.c.mono)
+        return self._pairs_max(i, s, self.c.mono_blocks)
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
         d = np.einsum("kij,jkm->kim", self._diff_mats(i, s), self.c.X_ch[:, jj])
