@@ -8,7 +8,7 @@ provably do not change the value:
 1. **Convex hull** (MSSD only). ``x ↦ ‖(R_e x + t_e) − (R_g R_s x + R_g t_s + t_g)‖`` is convex,
    so its maximum over the vertices is attained at a vertex of their convex hull (Qhull; all
    vertices when the hull is degenerate, when there are too few evaluations to pay for it, or
-   when a 500-point probe finds more than a quarter of the vertices on the hull: Qhull's time
+   when a 250-point probe finds more than 30 % of its points on the hull: Qhull's time
    grows with the hull, ≈ 10 ms for a thin 5,000-vertex needle, and the hull would only halve
    the vertices). MSPD's projected distance is not convex, so MSPD evaluates all vertices.
 2. **Branch and bound over symmetries.** The maximum over a subset of vertices is a lower bound
@@ -52,14 +52,16 @@ there depends on the last bit of ``w``, as in the reference.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import NDArray
 
 from bopsurg.metrics._pairs import PosePairs, chunks
 from bopsurg.metrics.point_subsets import (
     extreme_point_order,
+    hull_probe,
     hull_vertex_indices,
-    hull_vertex_share,
 )
 
 F64 = NDArray[np.float64]
@@ -76,6 +78,8 @@ LEVEL_POINTS = (32,)
 #: this many in all (when there are at least 4 times as many). Cheap next to a full evaluation
 #: and tight when many vertices are near the maximum (small, thin models).
 SAMPLE_POINTS = 256
+#: The extreme vertices of the bound subsets come from at most this many vertices.
+EXTREME_SAMPLE = 1250
 #: Doubles per temporary work block (512 KiB, cache-sized).
 WORK = 1 << 16
 #: Multiply-adds per matrix product at most: OpenBLAS runs such products on one thread. These
@@ -87,7 +91,7 @@ VERTEX_BLOCK = 1280
 #: MSSD computes the convex hull only for at least this many (pose, symmetry) evaluations.
 HULL_MIN_EVALS = 256
 #: ... and only if a probe says that at most this share of the vertices is on the hull.
-HULL_MAX_SHARE = 0.25
+HULL_MAX_SHARE = 0.3
 #: Largest deviation of the symmetry set from a one-parameter family ``W0 + a E1 + b E2``
 #: (relative to its largest entry) for which the bounds use that family.
 FAMILY_RESIDUAL = 1e-10
@@ -203,9 +207,7 @@ class _Common:
         self.levels_h = [np.ascontiguousarray(self.X_ch[:, order[:m]]) for m in self.levels]
         rho2 = max(np.einsum("ij,ij->i", pts, pts).max(), np.einsum("ij,ij->i", X_c, X_c).max())
         self.rho = float(np.sqrt(rho2))  # ≥ ‖x‖
-        sig = np.linalg.norm(R_sym, ord=2, axis=(1, 2))
         tn = np.linalg.norm(t_sym, axis=1)
-        self.rho_sym = float(np.max(sig * self.rho + tn))  # ≥ ‖R_s x + t_s‖ for all s, x
         self.sym_frob = float(np.linalg.norm(R_sym, axis=(1, 2)).max())
         self.sym_t = float(tn.max())
         self.family = symmetry_family(R_sym, t_sym)
@@ -219,6 +221,12 @@ class _Common:
             (v.start, np.ascontiguousarray(self.mono[:, v]))
             for v in chunks(self.mono.shape[1], VERTEX_BLOCK)
         ]
+
+    @functools.cached_property
+    def rho_sym(self) -> float:
+        """≥ ‖R_s x + t_s‖ for all s and x, mm (MSPD's camera-plane guard only)."""
+        sig = np.linalg.norm(self.R_sym, ord=2, axis=(1, 2))
+        return float(np.max(sig * self.rho + np.linalg.norm(self.t_sym, axis=1)))
 
 
 class _Kernel:
@@ -273,13 +281,13 @@ class _Kernel3D(_Kernel):
         self.R_e, self.te = np.ascontiguousarray(R_e), np.ascontiguousarray(te)
         self.R_g, self.tg = np.ascontiguousarray(R_g), np.ascontiguousarray(tg)
         self.n, self.s = R_e.shape[0], c.R_sym.shape[0]
-        fe = np.linalg.norm(self.R_e, axis=(1, 2))
-        fg = np.linalg.norm(self.R_g, axis=(1, 2))
+        fe = np.sqrt(np.einsum("nij,nij->n", self.R_e, self.R_e))  # Frobenius norms
+        fg = np.sqrt(np.einsum("nij,nij->n", self.R_g, self.R_g))
         scale = (
             (fe + fg * c.sym_frob) * c.rho
             + fg * c.sym_t
-            + np.linalg.norm(self.te, axis=1)
-            + np.linalg.norm(self.tg, axis=1)
+            + np.sqrt(np.einsum("ni,ni->n", self.te, self.te))
+            + np.sqrt(np.einsum("ni,ni->n", self.tg, self.tg))
         )
         self.M: F64 | None = None
         fit = np.zeros(self.n)
@@ -361,21 +369,24 @@ class _Kernel3D(_Kernel):
         """Maxima over the vertices of ``blocks`` ((offset, (10, w) monomials) each)."""
         q = _gram_rows(self._diff_mats(i, s))
         width = max(m.shape[1] for _, m in blocks)
-        val, arg = np.empty(i.size), np.empty(i.size, dtype=np.int64)
         kb = max(1, SERIAL_MACS // (10 * width))
         buf = np.empty((min(kb, i.size), width))
+        # per block: maxima and their indices (offset included), then the best block per pair
+        vals = np.empty((len(blocks), i.size))
+        args = np.empty((len(blocks), i.size), dtype=np.int64)
+        rows = np.arange(buf.shape[0])
         for b in chunks(i.size, kb):
             k = b.stop - b.start
-            for off, m in blocks:
-                bv, bj = _rowwise_max(np.matmul(q[b], m, out=buf[:k, : m.shape[1]]))
-                if off == 0:
-                    val[b], arg[b] = bv, bj
-                    continue
-                # a NaN (overflow) must reach the result, as np.max would let it
-                up = (bv > val[b]) | np.isnan(bv)
-                val[b] = np.where(up, bv, val[b])
-                arg[b] = np.where(up, bj + off, arg[b])
-        return val, arg
+            for n, (off, m) in enumerate(blocks):
+                sq = np.matmul(q[b], m, out=buf[:k, : m.shape[1]])
+                j = sq.argmax(axis=1)
+                vals[n, b] = sq[rows[:k], j]
+                args[n, b] = j + off
+        if len(blocks) == 1:
+            return vals[0], args[0]
+        best = np.argmax(vals, axis=0)  # the first NaN wins, as in np.max
+        cols = np.arange(i.size)
+        return vals[best, cols], args[best, cols]
 
     def pairs_lb(self, i: I64, s: I64, level: int) -> F64:
         return self._pairs_max(i, s, [(0, self.c.levels_mono[level])])[0]
@@ -621,6 +632,17 @@ def _solve_chunk(k: _Kernel) -> F64:
     return out
 
 
+def _bound_order(pts: F64, m: int) -> I64:
+    """Indices of up to ``m`` extreme vertices for the bound subsets, farthest-point ordered.
+
+    Any subset gives valid bounds; above ``EXTREME_SAMPLE`` vertices the extreme points are
+    taken from an evenly strided sample (a fraction of the cost, nearly as extreme).
+    """
+    step = -(-pts.shape[0] // EXTREME_SAMPLE)
+    result: I64 = np.arange(0, pts.shape[0], step)[extreme_point_order(pts[::step], m)]
+    return result
+
+
 def _default_chunk(n_syms: int) -> int:
     # ~16 MB of per-chunk arrays: the (pose, symmetry) bound grids and their masks.
     per_pose = 8 * (8 * n_syms + 256)
@@ -653,14 +675,14 @@ def min_max_distance_3d(
     """
     if candidates is not None:
         X_c = candidates
-    elif (
-        pairs.n * min(R_sym.shape[0], 2) >= HULL_MIN_EVALS
-        and hull_vertex_share(pts) <= HULL_MAX_SHARE
-    ):
-        X_c = pts[hull_vertex_indices(pts)]
-    else:  # too few evaluations, or too many hull vertices, to pay for Qhull
+    elif pairs.n * min(R_sym.shape[0], 2) >= HULL_MIN_EVALS:
+        cand, share = hull_probe(pts)
+        X_c = pts[cand]
+        if share <= HULL_MAX_SHARE:  # a small hull: Qhull pays for itself
+            X_c = X_c[hull_vertex_indices(X_c)]
+    else:  # too few evaluations to pay for the probe
         X_c = pts
-    order = extreme_point_order(X_c, max(LEVEL_POINTS))
+    order = _bound_order(X_c, max(LEVEL_POINTS))
     h = X_c.shape[0]
     if h >= 4 * SAMPLE_POINTS:
         sample = np.arange(0, h, -(-h // (SAMPLE_POINTS - order.size)), dtype=np.int64)
@@ -698,7 +720,7 @@ def min_max_distance_proj(
     """
     # Bound subsets from extreme vertices: projected distances tend to peak there (not always,
     # so the full evaluations still cover every vertex).
-    order = extreme_point_order(pts, max(LEVEL_POINTS) if R_sym.shape[0] > 1 else 1)
+    order = _bound_order(pts, max(LEVEL_POINTS) if R_sym.shape[0] > 1 else 1)
     c = _Common(pts, pts, order, R_sym, t_sym)
     size = chunk_size or _default_chunk(R_sym.shape[0])
     out = np.empty(pairs.n)

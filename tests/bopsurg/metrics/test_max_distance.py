@@ -13,6 +13,7 @@ from bopsurg.metrics import reference as ref
 from bopsurg.metrics.point_subsets import (
     extreme_point_order,
     farthest_point_order,
+    hull_probe,
     hull_vertex_indices,
     hull_vertices,
     sphere_directions,
@@ -306,10 +307,27 @@ def test_family_and_generic_bounds_match_reference(info: dict[str, object]) -> N
     )
 
 
-def test_hull_share_probe_tells_solid_from_thin_models() -> None:
+@pytest.mark.parametrize("model", ["box", "needle", "planar", "few"])
+def test_hull_probe_keeps_every_hull_vertex_and_tells_solid_from_thin(model: str) -> None:
     rng = np.random.default_rng(13)
-    assert max_distance.hull_vertex_share(box_model(rng, 5000)) < max_distance.HULL_MAX_SHARE
-    assert max_distance.hull_vertex_share(arc_model(rng, 5000)) > max_distance.HULL_MAX_SHARE
+    pts = {
+        "box": lambda: box_model(rng, 5000),
+        "needle": lambda: arc_model(rng, 5000),
+        "planar": lambda: np.c_[rng.uniform(-5, 5, (600, 2)), np.zeros(600)],
+        "few": lambda: box_model(rng, 4),
+    }[model]()
+    cand, share = hull_probe(pts)
+    assert np.all(np.diff(cand) > 0)
+    assert set(hull_vertex_indices(pts).tolist()) <= set(cand.tolist())
+    if model == "box":  # solid: a small hull, most points dropped before Qhull
+        assert share < max_distance.HULL_MAX_SHARE
+        assert cand.size < len(pts) // 4
+    elif model == "needle":  # thin: half the points on the hull, and still a cut
+        assert share > max_distance.HULL_MAX_SHARE
+        assert cand.size < 0.7 * len(pts)
+    else:  # degenerate sample hulls keep everything
+        assert share == 1.0
+        assert cand.size == len(pts)
 
 
 @pytest.mark.parametrize("model", ["box", "needle"])
