@@ -6,11 +6,13 @@ vertices). This module returns the same numbers with far less work, using only s
 provably do not change the value:
 
 1. **Convex hull** (MSSD only). ``x ↦ ‖(R_e x + t_e) − (R_g R_s x + R_g t_s + t_g)‖`` is convex,
-   so its maximum over the vertices is attained at a vertex of their convex hull (Qhull; all
-   vertices when the hull is degenerate, when there are too few evaluations to pay for it, or
-   when a 250-point probe finds more than 30 % of its points on the hull: Qhull's time
-   grows with the hull, ≈ 10 ms for a thin 5,000-vertex needle, and the hull would only halve
-   the vertices). MSPD's projected distance is not convex, so MSPD evaluates all vertices.
+   so its maximum over the vertices is attained at a vertex of their convex hull. The hull of
+   a 250-point strided sample first drops the vertices strictly inside it
+   (:func:`~bopsurg.metrics.point_subsets.hull_probe`); Qhull then runs on the rest when the
+   sample says the hull is small (a solid box: ~800 of 5,000 left, 99 on the hull), and is
+   skipped when 30 % or more of the sample is on its hull (a thin needle: ~2,700 left; Qhull
+   would cost ≈ 10 ms to halve that). All vertices when there are too few evaluations to pay
+   for the probe. MSPD's projected distance is not convex, so MSPD evaluates all vertices.
 2. **Branch and bound over symmetries.** The maximum over a subset of vertices is a lower bound
    of the maximum over all of them. Bounds are computed for every (pose, symmetry) from 4
    extreme vertices; each pose evaluates its smallest bound's symmetry in full (MSPD first
@@ -242,7 +244,7 @@ class _Kernel:
     tol: F64  # (n,) pruning tolerance, in the units of the values
     unsafe: B  # (n,) poses that need the exhaustive path
     #: Symmetries per pose whose bounds are refined before the first full evaluation.
-    first_picks = 0
+    first_picks = 8
 
     def grid_lb(self) -> F64:
         """(n, S) squared maxima over the first ``GRID_POINTS`` vertices of ``order``."""
