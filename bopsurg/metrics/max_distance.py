@@ -244,7 +244,7 @@ class _Kernel:
     tol: F64  # (n,) pruning tolerance, in the units of the values
     unsafe: B  # (n,) poses that need the exhaustive path
     #: Symmetries per pose whose bounds are refined before the first full evaluation.
-    first_picks = 8
+    first_picks = 0
 
     def grid_lb(self) -> F64:
         """(n, S) squared maxima over the first ``GRID_POINTS`` vertices of ``order``."""
