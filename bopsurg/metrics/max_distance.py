@@ -6,25 +6,42 @@ vertices). This module returns the same numbers with far less work, using only s
 provably do not change the value:
 
 1. **Convex hull** (MSSD only). ``x ↦ ‖(R_e x + t_e) − (R_g R_s x + R_g t_s + t_g)‖`` is convex,
-   so its maximum over the vertices is attained at a vertex of their convex hull (Qhull; all
-   vertices when the hull is degenerate, or when there are too few evaluations to pay for it).
-   MSPD's projected distance is not convex, so MSPD evaluates all vertices.
+   so its maximum over the vertices is attained at a vertex of their convex hull. The hull of
+   a 250-point strided sample first drops the vertices strictly inside it
+   (:func:`~bopsurg.metrics.point_subsets.hull_probe`); Qhull then runs on the rest when the
+   sample says the hull is small (a solid box: ~800 of 5,000 left, 99 on the hull), and is
+   skipped when 30 % or more of the sample is on its hull (a thin needle: ~2,700 left; Qhull
+   would cost ≈ 10 ms to halve that). All vertices when there are too few evaluations to pay
+   for the probe. MSPD's projected distance is not convex, so MSPD evaluates all vertices.
 2. **Branch and bound over symmetries.** The maximum over a subset of vertices is a lower bound
    of the maximum over all of them. Bounds are computed for every (pose, symmetry) from 4
-   extreme vertices, refined with 32 for the most promising symmetries; then, per pose,
-   symmetries are evaluated in full in increasing order of their bound until the next bound is
-   not below the best value found. After each full evaluation the maximising vertex tightens
-   the bounds of the remaining candidates. All poses advance together, in rounds (numpy
-   operations over all active poses; no Python loop over poses or vertices).
-3. **Final value by the reference's formula.** The search uses cheaper equivalent forms
-   (``[R_e − R_g R_s | t_e − t_g'] [x; 1]``; ``U · (1 / W)`` for ``U / W``); the returned value
-   is recomputed with the reference's direct difference formula at the maximising vertex of
-   the winning symmetry, so it equals the reference to float64 rounding (≤ 1e-9 relative;
-   absolute near 0).
+   extreme vertices; each pose evaluates its smallest bound's symmetry in full (MSPD first
+   refines the 8 smallest bounds with 32 vertices, as its full evaluations cost more). The
+   (pose, symmetry) pairs whose bound is below that value become a flat candidate list,
+   tightened with the maximising vertex, 32 extreme vertices and (MSSD, ≥ 1,024 vertices) an
+   evenly strided sample of 256; then, per pose, the candidate with the smallest bound is
+   evaluated in full until no bound is below the best value found, each new maximising vertex
+   tightening the bounds of the others. All poses advance together, in rounds (numpy
+   operations over all active candidates; no Python loop over poses or vertices).
+3. **The symmetry family** (MSSD). BOP's continuous symmetries are rotations about one axis,
+   so ``[R_s | t_s] = W0 + a_s E1 + b_s E2`` (detected by an SVD of the set with a residual
+   check, see :func:`symmetry_family`; other sets take the generic path). The squared
+   distance of a vertex is then ``[1, a, b, a², ab, b²] · f`` with 6 coefficients per (pose,
+   vertex), so the first bounds of all S symmetries are one (S × 6) matrix product.
+4. **Quadratic form** (MSSD). ``‖D [x; 1]‖² = q · m(x)`` with the 10 entries q of ``DᵀD`` and
+   the 10 monomials m(x) of the vertex, precomputed: a full evaluation is one 10-term product
+   per vertex instead of a 3×4 product and a sum of squares. ``D`` is formed from the
+   difference ``R_e − R_g R_s`` first, so the terms are of the size of the distance.
+5. **Final value by the reference's formula.** The search uses these cheaper equivalent forms
+   (and ``U · (1 / W)`` for ``U / W`` in MSPD); the returned value is recomputed with the
+   reference's direct difference formula at the maximising vertex of the winning symmetry, so
+   it equals the reference to float64 rounding (≤ 1e-9 relative; absolute near 0).
 
 Bounds are compared with a tolerance that exceeds any rounding difference between the forms
-(≈ 1e-13 mm, ≈ 1e-9 px), so a symmetry is only pruned if its exact value cannot be smaller; a
-near-tie can only change which of two equal (to rounding) values is returned.
+(MSSD in mm², from the sizes of the terms of each form; ≈ 1e-9 px for MSPD), so a symmetry is
+only pruned if its exact value cannot be smaller; a near-tie can only change which of two
+equal (to rounding) values is returned. Matrix products are issued in blocks of at most
+``SERIAL_MACS`` multiply-adds, which OpenBLAS runs on one thread (see there).
 
 **NaN/inf (MSPD).** Vertices on the camera plane (z = 0) project to inf/nan. The reference then
 returns NaN when its first (identity) term is NaN (``np.max`` propagates NaN; Python's ``min``
@@ -37,11 +54,17 @@ there depends on the last bit of ``w``, as in the reference.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import NDArray
 
 from bopsurg.metrics._pairs import PosePairs, chunks
-from bopsurg.metrics.point_subsets import extreme_point_order, hull_vertex_indices
+from bopsurg.metrics.point_subsets import (
+    extreme_point_order,
+    hull_probe,
+    hull_vertex_indices,
+)
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -53,12 +76,27 @@ EPS = float(np.finfo(np.float64).eps)
 GRID_POINTS = 4
 #: Vertices of the later bound stages, for the candidates that survive the previous one.
 LEVEL_POINTS = (32,)
-#: Symmetries per pose whose bounds are refined before the first full evaluation.
-FIRST_PICKS = 8
+#: MSSD's last bound stage: the extreme vertices plus an evenly strided sample of all of them,
+#: this many in all (when there are at least 4 times as many). Cheap next to a full evaluation
+#: and tight when many vertices are near the maximum (small, thin models).
+SAMPLE_POINTS = 256
+#: The extreme vertices of the bound subsets come from at most this many vertices.
+EXTREME_SAMPLE = 1250
 #: Doubles per temporary work block (512 KiB, cache-sized).
 WORK = 1 << 16
+#: Multiply-adds per matrix product at most: OpenBLAS runs such products on one thread. These
+#: products are memory-bound, so threads gain little, and on a loaded machine waiting for a
+#: descheduled thread costs 10-100x.
+SERIAL_MACS = 1 << 19
+#: Vertices per block of MSSD's full evaluations.
+VERTEX_BLOCK = 1280
 #: MSSD computes the convex hull only for at least this many (pose, symmetry) evaluations.
 HULL_MIN_EVALS = 256
+#: ... and only if a probe says that at most this share of the vertices is on the hull.
+HULL_MAX_SHARE = 0.3
+#: Largest deviation of the symmetry set from a one-parameter family ``W0 + a E1 + b E2``
+#: (relative to its largest entry) for which the bounds use that family.
+FAMILY_RESIDUAL = 1e-10
 #: Relative distance to the camera plane below which a pose is evaluated exhaustively.
 PLANE_GUARD = 1e-6
 
@@ -86,6 +124,53 @@ def _rowwise_max(sq: F64) -> tuple[F64, I64]:
     return sq[np.arange(sq.shape[0]), j], j
 
 
+#: Index pairs (a ≤ b) of the 10 monomials of a homogeneous point, and their weight in ‖D X‖².
+_MONO_A, _MONO_B = np.triu_indices(4)
+_MONO_W = np.where(_MONO_A == _MONO_B, 1.0, 2.0)
+
+
+def _monomials(X_h: F64) -> F64:
+    """The 10 products ``X_a X_b`` (a ≤ b) of homogeneous points (4, p), as (10, p) rows.
+
+    With the matching entries of ``Dᵀ D`` (off-diagonal ones doubled, see :func:`_gram_rows`),
+    ``‖D X‖² = q · monomials(X)``: one matrix product per set of (pose, symmetry) pairs.
+    """
+    result: F64 = X_h[_MONO_A] * X_h[_MONO_B]
+    return result
+
+
+def _gram_rows(diff: F64) -> F64:
+    """(k, 10) coefficients ``q`` of ``‖D X‖²`` for (k, 3, 4) matrices D (see _monomials)."""
+    result: F64 = np.einsum("kit,kit->kt", diff[:, :, _MONO_A], diff[:, :, _MONO_B]) * _MONO_W
+    return result
+
+
+def symmetry_family(R_sym: F64, t_sym: F64) -> tuple[F64, F64, F64, float] | None:
+    """The symmetry set as a one-parameter family ``[R_s | t_s] = W0 + a_s E1 + b_s E2``.
+
+    BOP's continuous symmetries are rotations about one axis: ``R_s`` and ``t_s`` are affine in
+    ``(cos θ_s, sin θ_s)``, so the (S, 12) matrix of ``[R_s | t_s]`` has rank 2 after
+    centring. Then a squared vertex distance is a quadratic in ``(a_s, b_s)``, and the bounds of
+    all symmetries come from one small matrix product. Detected numerically (SVD), not assumed.
+
+    Returns:
+        ``(ab (S, 2), W0 (3, 4), E (2, 3, 4), residual)`` with ``residual`` the largest entry
+        deviation (mm for the translations), or None when the set is not such a family
+        (e.g. discrete symmetries, or fewer than 3 transforms).
+    """
+    S = R_sym.shape[0]
+    if S < 3:
+        return None
+    w = np.concatenate([R_sym, t_sym[:, :, None]], axis=2).reshape(S, 12)
+    w0 = w.mean(axis=0)
+    u, sv, vt = np.linalg.svd(w - w0, full_matrices=False)
+    ab = u[:, :2] * sv[:2]
+    residual = float(np.abs(w - w0 - ab @ vt[:2]).max())
+    if not residual <= FAMILY_RESIDUAL * max(1.0, float(np.abs(w).max())):
+        return None
+    return ab, w0.reshape(3, 4), vt[:2].reshape(2, 3, 4), residual
+
+
 def _reference_min(vals: F64) -> F64:
     """Python's ``min`` over each row as the reference applies it (NaN first → NaN)."""
     filled = np.where(np.isnan(vals), np.inf, vals).min(axis=1)
@@ -103,7 +188,15 @@ class _Common:
         t_sym: (S, 3) symmetry translations, mm.
     """
 
-    def __init__(self, pts: F64, X_c: F64, order: I64, R_sym: F64, t_sym: F64) -> None:
+    def __init__(
+        self,
+        pts: F64,
+        X_c: F64,
+        order: I64,
+        R_sym: F64,
+        t_sym: F64,
+        level_points: tuple[int, ...] = LEVEL_POINTS,
+    ) -> None:
         self.X_c = np.ascontiguousarray(X_c)
         self.X_ch = _homogeneous_t(self.X_c)  # (4, H)
         self.R_sym, self.t_sym = R_sym, t_sym
@@ -111,16 +204,31 @@ class _Common:
         self.m1 = min(GRID_POINTS, order.size)
         self.Y1 = _sym_points(R_sym, t_sym, self.X_c[order[: self.m1]])  # (4, m1·S)
         # Nested farthest-point subsets, each smaller than the full set.
-        sizes = {min(m, order.size) for m in LEVEL_POINTS}
+        sizes = {min(m, order.size) for m in level_points}
         self.levels = sorted(m for m in sizes if self.m1 < m < self.X_c.shape[0])
         self.levels_h = [np.ascontiguousarray(self.X_ch[:, order[:m]]) for m in self.levels]
         rho2 = max(np.einsum("ij,ij->i", pts, pts).max(), np.einsum("ij,ij->i", X_c, X_c).max())
         self.rho = float(np.sqrt(rho2))  # ≥ ‖x‖
-        sig = np.linalg.norm(R_sym, ord=2, axis=(1, 2))
         tn = np.linalg.norm(t_sym, axis=1)
-        self.rho_sym = float(np.max(sig * self.rho + tn))  # ≥ ‖R_s x + t_s‖ for all s, x
         self.sym_frob = float(np.linalg.norm(R_sym, axis=(1, 2)).max())
         self.sym_t = float(tn.max())
+        self.family = symmetry_family(R_sym, t_sym)
+        with np.errstate(over="ignore"):
+            self.mono = _monomials(self.X_ch)  # (10, H)
+        self.mono_finite = bool(np.all(np.isfinite(self.mono)))
+        self.levels_mono = [np.ascontiguousarray(self.mono[:, order[:m]]) for m in self.levels]
+        # Vertex blocks of the full evaluations: more pairs per single-threaded product and a
+        # cache-sized result.
+        self.mono_blocks = [
+            (v.start, np.ascontiguousarray(self.mono[:, v]))
+            for v in chunks(self.mono.shape[1], VERTEX_BLOCK)
+        ]
+
+    @functools.cached_property
+    def rho_sym(self) -> float:
+        """≥ ‖R_s x + t_s‖ for all s and x, mm (MSPD's camera-plane guard only)."""
+        sig = np.linalg.norm(self.R_sym, ord=2, axis=(1, 2))
+        return float(np.max(sig * self.rho + np.linalg.norm(self.t_sym, axis=1)))
 
 
 class _Kernel:
@@ -133,8 +241,10 @@ class _Kernel:
     c: _Common
     n: int
     s: int
-    tol: F64  # (n,) pruning tolerance, distance units
+    tol: F64  # (n,) pruning tolerance, in the units of the values
     unsafe: B  # (n,) poses that need the exhaustive path
+    #: Symmetries per pose whose bounds are refined before the first full evaluation.
+    first_picks = 0
 
     def grid_lb(self) -> F64:
         """(n, S) squared maxima over the first ``GRID_POINTS`` vertices of ``order``."""
@@ -162,26 +272,74 @@ class _Kernel:
 
 
 class _Kernel3D(_Kernel):
-    """``‖(R_e x + t_e) − (R_g R_s x + R_g t_s + t_g)‖`` over the candidate vertices."""
+    """``‖(R_e x + t_e) − (R_g R_s x + R_g t_s + t_g)‖`` over the candidate vertices.
+
+    Values are squared distances (mm²) and ``tol`` is in mm², so that no square root is taken
+    before the final value.
+    """
 
     def __init__(self, c: _Common, R_e: F64, te: F64, R_g: F64, tg: F64) -> None:
         self.c = c
         self.R_e, self.te = np.ascontiguousarray(R_e), np.ascontiguousarray(te)
         self.R_g, self.tg = np.ascontiguousarray(R_g), np.ascontiguousarray(tg)
         self.n, self.s = R_e.shape[0], c.R_sym.shape[0]
-        fe = np.linalg.norm(self.R_e, axis=(1, 2))
-        fg = np.linalg.norm(self.R_g, axis=(1, 2))
+        fe = np.sqrt(np.einsum("nij,nij->n", self.R_e, self.R_e))  # Frobenius norms
+        fg = np.sqrt(np.einsum("nij,nij->n", self.R_g, self.R_g))
         scale = (
             (fe + fg * c.sym_frob) * c.rho
             + fg * c.sym_t
-            + np.linalg.norm(self.te, axis=1)
-            + np.linalg.norm(self.tg, axis=1)
+            + np.sqrt(np.einsum("ni,ni->n", self.te, self.te))
+            + np.sqrt(np.einsum("ni,ni->n", self.tg, self.tg))
         )
-        # Any two float64 evaluations of one distance differ by far less than this.
-        self.tol = 64.0 * EPS * scale
-        self.unsafe = np.zeros(self.n, dtype=bool)
+        self.M: F64 | None = None
+        fit = np.zeros(self.n)
+        if c.family is not None:
+            ab, w0, e12, residual = c.family
+            # [R_e | t_e] − R_g [R_s | t_s] − [0 | t_g] = M0 + a_s M1 + b_s M2
+            self.M = np.empty((self.n, 3, 3, 4))
+            self.M[:, 0] = -np.matmul(self.R_g, w0)
+            self.M[:, 0, :, :3] += self.R_e
+            self.M[:, 0, :, 3] += self.te - self.tg
+            self.M[:, 1:] = -np.einsum("nij,ejk->neik", self.R_g, e12)
+            # the family's terms are summed separately: their sizes enter the rounding
+            amax = np.abs(ab).max(axis=0)
+            terms = np.linalg.norm(w0) + amax[0] * np.linalg.norm(e12[0])
+            scale = scale + fg * (terms + amax[1] * np.linalg.norm(e12[1])) * (c.rho + 1.0)
+            fit = fg * np.sqrt(12.0) * residual * (c.rho + 1.0)  # ≥ the family's point error
+        # Any two float64 evaluations of one distance differ by far less than tau (mm); their
+        # squares by less than tol (mm²).
+        tau = 64.0 * EPS * scale + fit
+        self.tol = tau * (2.0 * scale + tau)
+        # Squared coordinates that overflow (|x| > 1e150): the exhaustive difference form.
+        self.unsafe = np.full(self.n, not c.mono_finite)
 
     def grid_lb(self) -> F64:
+        if self.M is None:
+            return self._grid_lb_generic()
+        c, m1, S = self.c, self.c.m1, self.s
+        assert c.family is not None
+        ab = c.family[0]
+        phi = np.stack([np.ones(S), ab[:, 0], ab[:, 1], ab[:, 0] ** 2, ab[:, 0] * ab[:, 1]])
+        phi = np.concatenate([phi, ab[None, :, 1] ** 2]).T.copy()  # (S, 6)
+        X = c.X_ch[:, c.order[:m1]]
+        y = np.matmul(self.M, X)  # (n, 3, 3, m1): M0 X, M1 X, M2 X
+        y0, y1, y2 = y[:, 0], y[:, 1], y[:, 2]
+        # ‖y0 + a y1 + b y2‖² = [1, a, b, a², ab, b²] · f
+        f = np.empty((self.n, m1, 6))
+        f[:, :, 0] = np.einsum("niq,niq->nq", y0, y0)
+        f[:, :, 1] = 2.0 * np.einsum("niq,niq->nq", y0, y1)
+        f[:, :, 2] = 2.0 * np.einsum("niq,niq->nq", y0, y2)
+        f[:, :, 3] = np.einsum("niq,niq->nq", y1, y1)
+        f[:, :, 4] = 2.0 * np.einsum("niq,niq->nq", y1, y2)
+        f[:, :, 5] = np.einsum("niq,niq->nq", y2, y2)
+        out = np.empty((self.n, S))
+        phi_t = np.ascontiguousarray(phi.T)
+        for b in chunks(self.n, max(1, SERIAL_MACS // (6 * S * m1))):
+            k = b.stop - b.start
+            out[b] = (f[b].reshape(k * m1, 6) @ phi_t).reshape(k, m1, S).max(axis=1)
+        return out
+
+    def _grid_lb_generic(self) -> F64:
         c, m1, S = self.c, self.c.m1, self.s
         P_g = np.concatenate([self.R_g, (self.tg - self.te)[:, :, None]], axis=2)  # (n, 3, 4)
         eq = np.matmul(self.R_e, c.X_c[c.order[:m1]].T)[:, :, :, None]  # (n, 3, m1, 1): R_e q
@@ -196,6 +354,12 @@ class _Kernel3D(_Kernel):
 
     def _diff_mats(self, i: I64, s: I64) -> F64:
         """``[R_e − R_g R_s | t_e − (R_g t_s + t_g)]`` per pair: (k, 3, 4)."""
+        if self.M is not None:
+            assert self.c.family is not None
+            ab = self.c.family[0][s]
+            m = self.M[i]
+            diff: F64 = m[:, 0] + ab[:, 0, None, None] * m[:, 1] + ab[:, 1, None, None] * m[:, 2]
+            return diff
         R_g = self.R_g[i]
         A = np.empty((i.size, 3, 4))
         A[:, :, :3] = self.R_e[i] - np.matmul(R_g, self.c.R_sym[s])
@@ -203,23 +367,37 @@ class _Kernel3D(_Kernel):
         A[:, :, 3] = self.te[i] - t_gs
         return A
 
-    def _pairs_max(self, i: I64, s: I64, X_h: F64) -> tuple[F64, I64]:
-        p = X_h.shape[1]
-        A = self._diff_mats(i, s)
-        val, arg = np.empty(i.size), np.empty(i.size, dtype=np.int64)
-        kb = max(1, WORK // (3 * p))
-        buf, sqbuf = np.empty((min(kb, i.size) * 3, p)), np.empty((min(kb, i.size), p))
+    def _pairs_max(self, i: I64, s: I64, blocks: list[tuple[int, F64]]) -> tuple[F64, I64]:
+        """Maxima over the vertices of ``blocks`` ((offset, (10, w) monomials) each)."""
+        q = _gram_rows(self._diff_mats(i, s))
+        width = max(m.shape[1] for _, m in blocks)
+        kb = max(1, SERIAL_MACS // (10 * width))
+        buf = np.empty((min(kb, i.size), width))
+        # per block: maxima and their indices (offset included), then the best block per pair
+        vals = np.empty((len(blocks), i.size))
+        args = np.empty((len(blocks), i.size), dtype=np.int64)
+        rows = np.arange(buf.shape[0])
         for b in chunks(i.size, kb):
             k = b.stop - b.start
-            diff = np.matmul(A[b].reshape(-1, 4), X_h, out=buf[: 3 * k]).reshape(k, 3, p)
-            val[b], arg[b] = _rowwise_max(np.einsum("kip,kip->kp", diff, diff, out=sqbuf[:k]))
-        return val, arg
+            for n, (off, m) in enumerate(blocks):
+                sq = np.matmul(q[b], m, out=buf[:k, : m.shape[1]])
+                j = sq.argmax(axis=1)
+                vals[n, b] = sq[rows[:k], j]
+                args[n, b] = j + off
+        if len(blocks) == 1:
+            return vals[0], args[0]
+        best = np.argmax(vals, axis=0)  # the first NaN wins, as in np.max
+        cols = np.arange(i.size)
+        return vals[best, cols], args[best, cols]
 
     def pairs_lb(self, i: I64, s: I64, level: int) -> F64:
-        return self._pairs_max(i, s, self.c.levels_h[level])[0]
+        return self._pairs_max(i, s, [(0, self.c.levels_mono[level])])[0]
 
     def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
-        return self._pairs_max(i, s, self.c.X_ch)  # finite inputs: no inf/NaN to mirror
+        if exact:  # the difference form, for coordinates whose squares overflow
+            d = np.einsum("kij,jp->kip", self._diff_mats(i, s), self.c.X_ch)
+            return _rowwise_max(np.einsum("kip,kip->kp", d, d))
+        return self._pairs_max(i, s, self.c.mono_blocks)
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
         d = np.einsum("kij,jkm->kim", self._diff_mats(i, s), self.c.X_ch[:, jj])
@@ -240,7 +418,9 @@ class _Kernel3D(_Kernel):
 
 
 class _KernelProj(_Kernel):
-    """``‖π(K, R_e, t_e, x) − π(K, R_g R_s, R_g t_s + t_g, x)‖`` over all vertices."""
+    """``‖π(K, R_e, t_e, x) − π(K, R_g R_s, R_g t_s + t_g, x)‖`` over all vertices (px)."""
+
+    first_picks = 8
 
     def __init__(self, c: _Common, R_e: F64, te: F64, R_g: F64, tg: F64, K: F64) -> None:
         self.c = c
@@ -289,7 +469,7 @@ class _KernelProj(_Kernel):
                 uv *= np.divide(1.0, uvw[:, 2])[:, None]
                 uv -= est[b]
                 out[b] = np.einsum("kiqs,kiqs->kqs", uv, uv).max(axis=1)
-        return out
+        return np.sqrt(out)
 
     def _proj_mats(self, i: I64, s: I64) -> F64:
         """``K [R_g R_s | R_g t_s + t_g]`` per pair, as the reference builds P: (k, 3, 4)."""
@@ -312,14 +492,14 @@ class _KernelProj(_Kernel):
                 uv *= np.divide(1.0, uvw[:, 2])[:, None]
                 uv -= self.est_sub[i[b], :, :m]
                 val[b] = np.einsum("kip,kip->kp", uv, uv).max(axis=1)
-        return val
+        return np.sqrt(val)
 
     def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
         p = self.c.X_ch.shape[1]
         # Estimate and GT-sym projection matrices, stacked so one product serves both.
         P = np.concatenate([self.P_e[i], self._proj_mats(i, s)], axis=1)  # (k, 6, 4)
         val, arg = np.empty(i.size), np.empty(i.size, dtype=np.int64)
-        kb = max(1, WORK // (6 * p))
+        kb = max(1, SERIAL_MACS // (24 * p))
         n0 = min(kb, i.size)
         # Reused work buffers: fresh ~MB-sized temporaries per block cost page faults.
         buf, rbuf, sqbuf = np.empty((n0 * 6, p)), np.empty((n0, 2, p)), np.empty((n0, p))
@@ -339,7 +519,7 @@ class _KernelProj(_Kernel):
                 d = uv[:, 0]
                 np.subtract(d, uv[:, 1], out=d)  # estimate − GT-sym, as the reference
                 val[b], arg[b] = _rowwise_max(np.einsum("kip,kip->kp", d, d, out=sqbuf[:k]))
-        return val, arg
+        return np.sqrt(val), arg
 
     def _dist_sq(self, i: I64, s: I64, jj: I64) -> F64:
         """(k, m) squared projection distances at vertices ``X_c[jj]`` (reference's formula)."""
@@ -352,7 +532,7 @@ class _KernelProj(_Kernel):
             return result
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
-        result: F64 = self._dist_sq(i, s, jj).max(axis=1)
+        result: F64 = np.sqrt(self._dist_sq(i, s, jj).max(axis=1))
         return result
 
     def final(self, i: I64, s: I64, j: I64) -> F64:
@@ -360,50 +540,54 @@ class _KernelProj(_Kernel):
             return np.sqrt(self._dist_sq(i, s, j[:, None])[:, 0])
 
 
-def _search(k: _Kernel, g: I64, lbd: F64) -> F64:
-    """Branch and bound for the poses ``g`` of a chunk, given their bounds ``lbd`` (ng, S)."""
-    ng, S = lbd.shape
+def _search(k: _Kernel, g: I64, lb: F64) -> F64:
+    """Branch and bound for the poses ``g`` of a chunk, given their bounds ``lb`` (ng, S).
+
+    Values and bounds are in the kernel's units (squared for MSSD). After the first full
+    evaluation per pose, only the (pose, symmetry) candidates whose bound is below the best
+    value are kept, as a flat list: later rounds never touch the (ng, S) grid.
+    """
+    ng, S = lb.shape
     rows = np.arange(ng)
     tol = k.tol[g]
-    # Round 0: every pose evaluates its most promising symmetry in full, chosen by the bounds
-    # of a larger subset for the few symmetries with the smallest first bounds.
-    if k.c.levels and FIRST_PICKS < S:
-        top = np.argpartition(lbd, FIRST_PICKS, axis=1)[:, :FIRST_PICKS]
-        ci = np.repeat(rows, FIRST_PICKS)
-        cs = top.reshape(-1)
-        lbd[ci, cs] = np.maximum(lbd[ci, cs], np.sqrt(k.pairs_lb(g[ci], cs, 0)))
-    s0 = np.argmin(lbd, axis=1)
-    v, j = k.pairs_full(g, s0)
-    best, win_s, win_j = np.sqrt(v), s0, j
-    done = np.zeros((ng, S), dtype=bool)
-    done[rows, s0] = True
-    # Tighten the bounds of the surviving candidates: the maximising vertex of round 0 (near
-    # symmetries tend to peak at the same vertex), then larger farthest-point subsets.
+    if k.first_picks and k.c.levels and k.first_picks < S:
+        # Round 0's symmetry is chosen by the bounds of a larger subset for the few smallest
+        # first bounds (worth it when a full evaluation is expensive: MSPD).
+        kth = np.partition(lb, k.first_picks - 1, axis=1)[:, k.first_picks - 1]
+        ci, cs = np.nonzero(lb <= kth[:, None])
+        lb[ci, cs] = np.maximum(lb[ci, cs], k.pairs_lb(g[ci], cs, 0))
+    win_s = np.argmin(lb, axis=1)
+    best, win_j = k.pairs_full(g, win_s)
+    lb[rows, win_s] = np.inf
+    ci, cs = np.nonzero(lb < (best + tol)[:, None])
+    clb = lb[ci, cs]
+    # Tighten: the maximising vertex of round 0 (near symmetries tend to peak at the same
+    # vertex), then larger farthest-point subsets.
     for level in range(-1, len(k.c.levels)):
-        ci, cs = np.nonzero(~done & (lbd - best[:, None] < tol[:, None]))
         if not ci.size:
             break
-        sq = k.pairs_at(g[ci], cs, j[ci, None]) if level < 0 else k.pairs_lb(g[ci], cs, level)
-        lbd[ci, cs] = np.maximum(lbd[ci, cs], np.sqrt(sq))
-    alive = rows
-    while alive.size:
-        sub = np.where(done[alive], np.inf, lbd[alive])
-        sn = np.argmin(sub, axis=1)
-        go = sub[np.arange(alive.size), sn] - best[alive] < tol[alive]
-        alive, sn = alive[go], sn[go]
-        if not alive.size:
-            break
-        v, j = k.pairs_full(g[alive], sn)
-        d = np.sqrt(v)
-        done[alive, sn] = True
-        imp = d < best[alive]
-        ai = alive[imp]
-        best[ai], win_s[ai], win_j[ai] = d[imp], sn[imp], j[imp]
+        at_j = level < 0
+        clb = np.maximum(
+            clb, k.pairs_at(g[ci], cs, win_j[ci, None]) if at_j else k.pairs_lb(g[ci], cs, level)
+        )
+        keep = clb - best[ci] < tol[ci]
+        ci, cs, clb = ci[keep], cs[keep], clb[keep]
+    j_new = np.empty(ng, dtype=np.int64)
+    while ci.size:
+        # Per pose, the candidate with the smallest bound is evaluated in full.
+        o = np.lexsort((clb, ci))
+        ci, cs, clb = ci[o], cs[o], clb[o]
+        first = np.r_[True, ci[1:] != ci[:-1]]
+        fi, fs = ci[first], cs[first]
+        v, j = k.pairs_full(g[fi], fs)
+        imp = v < best[fi]
+        best[fi[imp]], win_s[fi[imp]], win_j[fi[imp]] = v[imp], fs[imp], j[imp]
+        ci, cs, clb = ci[~first], cs[~first], clb[~first]
         # The new maximiser bounds the other candidates of the same pose.
-        ci, cs = np.nonzero(~done[alive] & (lbd[alive] - best[alive, None] < tol[alive, None]))
-        if ci.size:
-            rr = alive[ci]
-            lbd[rr, cs] = np.maximum(lbd[rr, cs], np.sqrt(k.pairs_at(g[rr], cs, j[ci, None])))
+        j_new[fi] = j
+        clb = np.maximum(clb, k.pairs_at(g[ci], cs, j_new[ci, None]))
+        keep = clb - best[ci] < tol[ci]
+        ci, cs, clb = ci[keep], cs[keep], clb[keep]
     return k.final(g, win_s, win_j)
 
 
@@ -434,17 +618,31 @@ def _solve_chunk(k: _Kernel) -> F64:
         s = np.zeros(g.size, dtype=np.int64)
         out[g] = k.final(g, s, k.pairs_full(g, s)[1])
     elif g.size:
-        lb = k.grid_lb()[g]
-        ok = np.all(np.isfinite(lb), axis=1)
-        brute[g[~ok]] = True
-        g, lb = g[ok], lb[ok]
+        lb = k.grid_lb()
+        if g.size < k.n:
+            lb = lb[g]
+        ok = np.isfinite(lb.max(axis=1))  # NaN and inf both reach the row maximum
+        if not ok.all():
+            brute[g[~ok]] = True
+            g, lb = g[ok], lb[ok]
         if g.size:
-            out[g] = _search(k, g, np.sqrt(lb))
+            out[g] = _search(k, g, lb)
     brute[g[~np.isfinite(out[g])]] = True  # overflow: redo exhaustively
     b = np.flatnonzero(brute)
     if b.size:
         out[b] = _exhaustive(k, b)
     return out
+
+
+def _bound_order(pts: F64, m: int) -> I64:
+    """Indices of up to ``m`` extreme vertices for the bound subsets, farthest-point ordered.
+
+    Any subset gives valid bounds; above ``EXTREME_SAMPLE`` vertices the extreme points are
+    taken from an evenly strided sample (a fraction of the cost, nearly as extreme).
+    """
+    step = -(-pts.shape[0] // EXTREME_SAMPLE)
+    result: I64 = np.arange(0, pts.shape[0], step)[extreme_point_order(pts[::step], m)]
+    return result
 
 
 def _default_chunk(n_syms: int) -> int:
@@ -480,10 +678,18 @@ def min_max_distance_3d(
     if candidates is not None:
         X_c = candidates
     elif pairs.n * min(R_sym.shape[0], 2) >= HULL_MIN_EVALS:
-        X_c = pts[hull_vertex_indices(pts)]
-    else:  # too few evaluations to pay for Qhull (up to ~10 ms for 5,000 vertices)
+        cand, share = hull_probe(pts)
+        X_c = pts[cand]
+        if share <= HULL_MAX_SHARE:  # a small hull: Qhull pays for itself
+            X_c = X_c[hull_vertex_indices(X_c)]
+    else:  # too few evaluations to pay for the probe
         X_c = pts
-    c = _Common(pts, X_c, extreme_point_order(X_c, max(LEVEL_POINTS)), R_sym, t_sym)
+    order = _bound_order(X_c, max(LEVEL_POINTS))
+    h = X_c.shape[0]
+    if h >= 4 * SAMPLE_POINTS:
+        sample = np.arange(0, h, -(-h // (SAMPLE_POINTS - order.size)), dtype=np.int64)
+        order = np.concatenate([order, np.setdiff1d(sample, order)])
+    c = _Common(pts, X_c, order, R_sym, t_sym, (*LEVEL_POINTS, order.size))
     size = chunk_size or _default_chunk(R_sym.shape[0])
     out = np.empty(pairs.n)
     for sl in chunks(pairs.n, size):
@@ -516,7 +722,7 @@ def min_max_distance_proj(
     """
     # Bound subsets from extreme vertices: projected distances tend to peak there (not always,
     # so the full evaluations still cover every vertex).
-    order = extreme_point_order(pts, max(LEVEL_POINTS) if R_sym.shape[0] > 1 else 1)
+    order = _bound_order(pts, max(LEVEL_POINTS) if R_sym.shape[0] > 1 else 1)
     c = _Common(pts, pts, order, R_sym, t_sym)
     size = chunk_size or _default_chunk(R_sym.shape[0])
     out = np.empty(pairs.n)

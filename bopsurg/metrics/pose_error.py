@@ -131,7 +131,7 @@ def mssd(
 
     ``min_{s} max_x ‖(R_e x + t_e) − (R_g R_s x + R_g t_s + t_g)‖``, evaluated with the exact
     shortcuts of :mod:`bopsurg.metrics.max_distance` (convex hull, branch and bound over
-    symmetries); about 100-1000× faster than the reference's loop, same values.
+    symmetries); about 1000× faster than the reference's loop, same values.
 
     Args:
         R_est: (N, 3, 3) or (3, 3) estimated rotations.
@@ -144,8 +144,9 @@ def mssd(
             ``{"R", "t"}`` dicts, or None (identity only).
         candidates: (H, 3) points whose convex hull contains ``pts`` (e.g.
             :func:`~bopsurg.metrics.point_subsets.hull_vertices` of the model, computed once
-            and reused across calls); default: the hull is computed here. Passing points whose
-            hull does not contain ``pts`` gives wrong results.
+            and reused across calls); default: the hull is computed here when it is small
+            (a probe decides; see :mod:`bopsurg.metrics.max_distance`), else all of ``pts``.
+            Passing points whose hull does not contain ``pts`` gives wrong results.
         chunk_size: Poses per chunk (memory bound); default from a ~16 MB budget.
 
     Returns:

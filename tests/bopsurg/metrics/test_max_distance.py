@@ -13,6 +13,7 @@ from bopsurg.metrics import reference as ref
 from bopsurg.metrics.point_subsets import (
     extreme_point_order,
     farthest_point_order,
+    hull_probe,
     hull_vertex_indices,
     hull_vertices,
     sphere_directions,
@@ -253,3 +254,91 @@ def test_overflowing_coordinates_give_inf_like_the_reference() -> None:
         exp = _ref("mssd", R_est, t_est, R_gt, t_gt, pts, syms)
     assert_close(got, exp)
     assert np.all(np.isinf(got))
+
+
+# --- the symmetry family, the hull probe and the sampled bound stage -------------------------
+
+TILTED = {"symmetries_continuous": [{"axis": [1.0, -2.0, 0.5], "offset": [3.0, -4.0, 7.0]}]}
+DISC_AND_CONT = {
+    "symmetries_discrete": [[1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 5.0, 0, 0, 0, 1]],
+    **CONT_Z,
+}
+
+
+def test_symmetry_family_of_a_continuous_symmetry_reconstructs_every_transform() -> None:
+    R_sym, t_sym = symmetry_transforms(TILTED, 0.05)
+    fam = max_distance.symmetry_family(R_sym, t_sym)
+    assert fam is not None
+    ab, w0, e12, residual = fam
+    rebuilt = w0 + np.einsum("sk,kij->sij", ab, e12)
+    np.testing.assert_allclose(rebuilt[:, :, :3], R_sym, atol=1e-14)
+    np.testing.assert_allclose(rebuilt[:, :, 3], t_sym, atol=1e-13)
+    assert residual < 1e-12
+
+
+@pytest.mark.parametrize(
+    "syms",
+    [
+        (np.stack([np.eye(3), np.diag([-1.0, -1.0, 1.0])]), np.zeros((2, 3))),  # S < 3
+        symmetry_transforms(DISC_AND_CONT, 0.3),  # two families: rank 4
+    ],
+    ids=["discrete", "discrete-and-continuous"],
+)
+def test_symmetry_family_is_none_for_other_sets(syms: tuple[np.ndarray, np.ndarray]) -> None:
+    assert max_distance.symmetry_family(*syms) is None
+
+
+@pytest.mark.parametrize("info", [TILTED, DISC_AND_CONT], ids=["family", "generic"])
+def test_family_and_generic_bounds_match_reference(info: dict[str, object]) -> None:
+    rng = np.random.default_rng(12)
+    pts = box_model(rng, 400)
+    syms = symmetry_transforms(info, 0.1)
+    parts = [pose_pairs(rng, 15, deg=d, mm=d) for d in (0.01, 3.0, 30.0, 180.0)]
+    R_est, t_est, R_gt, t_gt = (np.concatenate(x) for x in zip(*parts, strict=True))
+    R_gt = R_gt * 1.1 + rng.normal(
+        0, 0.02, R_gt.shape
+    )  # not orthonormal: no shortcut may assume it
+    assert_close(
+        mssd(R_est, t_est, R_gt, t_gt, pts, syms), _ref("mssd", R_est, t_est, R_gt, t_gt, pts, syms)
+    )
+    assert_close(
+        mspd(R_est, t_est, R_gt, t_gt, K_CAM, pts, syms),
+        _ref("mspd", R_est, t_est, R_gt, t_gt, K_CAM, pts, syms),
+    )
+
+
+@pytest.mark.parametrize("model", ["box", "needle", "planar", "few"])
+def test_hull_probe_keeps_every_hull_vertex_and_tells_solid_from_thin(model: str) -> None:
+    rng = np.random.default_rng(13)
+    pts = {
+        "box": lambda: box_model(rng, 5000),
+        "needle": lambda: arc_model(rng, 5000),
+        "planar": lambda: np.c_[rng.uniform(-5, 5, (600, 2)), np.zeros(600)],
+        "few": lambda: box_model(rng, 4),
+    }[model]()
+    cand, share = hull_probe(pts)
+    assert np.all(np.diff(cand) > 0)
+    assert set(hull_vertex_indices(pts).tolist()) <= set(cand.tolist())
+    if model == "box":  # solid: a small hull, most points dropped before Qhull
+        assert share < max_distance.HULL_MAX_SHARE
+        assert cand.size < len(pts) // 4
+    elif model == "needle":  # thin: half the points on the hull, and still a cut
+        assert share > max_distance.HULL_MAX_SHARE
+        assert cand.size < 0.7 * len(pts)
+    else:  # degenerate sample hulls keep everything
+        assert share == 1.0
+        assert cand.size == len(pts)
+
+
+@pytest.mark.parametrize("model", ["box", "needle"])
+def test_many_vertices_with_the_sampled_bound_stage(model: str) -> None:
+    """≥ 4·SAMPLE_POINTS vertices: the strided sample stage and (box) the probed hull."""
+    rng = np.random.default_rng(14)
+    v = 4 * max_distance.SAMPLE_POINTS
+    pts = box_model(rng, v) if model == "box" else arc_model(rng, v)
+    syms = symmetry_transforms(CONT_Z, 0.03)
+    parts = [pose_pairs(rng, 70, deg=d, mm=d) for d in (0.01, 3.0, 90.0)]
+    R_est, t_est, R_gt, t_gt = (np.concatenate(x) for x in zip(*parts, strict=True))
+    assert_close(
+        mssd(R_est, t_est, R_gt, t_gt, pts, syms), _ref("mssd", R_est, t_est, R_gt, t_gt, pts, syms)
+    )
