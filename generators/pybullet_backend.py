@@ -63,7 +63,6 @@ import cv2
 import numpy as np
 import pybullet as p
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import (
@@ -199,15 +198,15 @@ def render_window(
 WindowRender = Callable[[F64, int, int], tuple[NDArray[Any], NDArray[Any]]]
 
 
-def render_in_window(
+def render_window_depth(
     points: F64,
     T_cam_obj: F64,
     K: F64,
     size: tuple[int, int],
     clip: tuple[float, float],
     render: WindowRender,
-) -> F64:
-    """Depth (mm) of one object on a canvas, rendering only the window it can cover.
+) -> tuple[F64, tuple[int, int]] | None:
+    """Depth (mm) of one object in the pixel window of the canvas that it can cover.
 
     Args:
         points: (N, 3) points whose convex hull contains the object (its frame), m.
@@ -218,23 +217,41 @@ def render_in_window(
         render: Renders the window's buffers; called once, only if the object can be seen.
 
     Returns:
-        (height, width) z-depth, mm, 0 where the object is absent.
+        The window's z-depth (mm, 0 where the object is absent) and the (row, column) of its
+        top-left pixel on the canvas; None when the projection misses the canvas.
     """
     width, height = size
     near, far = clip
-    out = np.zeros((height, width))
     window = render_window(points, T_cam_obj, K, width, height, near)
     if window is None:
-        return out
+        return None
     u0, v0, u1, v1 = window
     Kw = K.copy()
     Kw[0, 2] -= u0
     Kw[1, 2] -= v0
     w, h = u1 - u0, v1 - v0
     depth, seg = render(Kw, w, h)
-    out[v0:v1, u0:u1] = depth_buffer_to_mm(
+    mm = depth_buffer_to_mm(
         np.asarray(depth).reshape(h, w), near, far, np.asarray(seg).reshape(h, w)
     )
+    return mm, (v0, u0)
+
+
+def render_in_window(
+    points: F64,
+    T_cam_obj: F64,
+    K: F64,
+    size: tuple[int, int],
+    clip: tuple[float, float],
+    render: WindowRender,
+) -> F64:
+    """:func:`render_window_depth` pasted on the whole (height, width) canvas (0 elsewhere)."""
+    width, height = size
+    out = np.zeros((height, width))
+    rendered = render_window_depth(points, T_cam_obj, K, size, clip, render)
+    if rendered is not None:
+        depth, (v0, u0) = rendered
+        out[v0 : v0 + depth.shape[0], u0 : u0 + depth.shape[1]] = depth
     return out
 
 
@@ -374,6 +391,8 @@ def upload_part(client: int, part: VisualPart, folder: Path, texture: int | None
 
 def _quaternions(poses: list[F64]) -> NDArray[np.float64]:
     """(N, 4) xyzw quaternions of 4×4 poses (one scipy call for all)."""
+    from scipy.spatial.transform import Rotation  # here: the depth renderer needs no scipy
+
     quats: NDArray[np.float64] = Rotation.from_matrix(
         np.stack([T[:3, :3] for T in poses])
     ).as_quat()
