@@ -30,7 +30,7 @@ import pybullet as p
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.bop.meshes import ObjectModel
-from bopsurg.generators.pybullet_backend import (
+from bopsurg.generators.pybullet_render import (
     PIXEL_OFFSETS,
     ClosesOnExit,
     projection_matrix,
