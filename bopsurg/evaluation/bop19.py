@@ -19,6 +19,7 @@ of the reference toolkit (``visib_gt_min = -1``, ``n_top = -1``, targets from
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import cast
 
@@ -337,7 +338,8 @@ def vsd_errors(
     """VSD errors (τ × P) of the pairs, 1 where the sphere projections do not overlap.
 
     Pairs are rendered image by image, each GT pose once, each model only in the window it
-    covers; of the image's depth only the box around those windows is decoded.
+    covers; of the image's depth only the box around those windows is decoded, in a second
+    thread while the next image renders (decoding releases the GIL).
 
     Raises:
         DatasetError: An image without ``depth_scale``.
@@ -352,25 +354,52 @@ def vsd_errors(
                             | np.r_[True, np.diff(im_of[order]) != 0])  # fmt: skip
     render = window_renderer(inputs.renderer)
     groups = np.split(todo[order], starts[1:])
-    for group in tqdm(groups, desc="VSD", unit="img", disable=not inputs.progress):
-        _image_vsd(out, group, est, gt, e_idx, g_idx, diameter, inputs, render)
+    pairs = _Pairs(est, gt, e_idx, g_idx)
+    with ThreadPoolExecutor(max_workers=1) as decoder:
+        previous: _ImageRenders | None = None
+        for group in tqdm(groups, desc="VSD", unit="img", disable=not inputs.progress):
+            current = _render_image(group, pairs, inputs, render, decoder)
+            if previous is not None:
+                _score_image(out, previous, pairs, diameter, inputs.delta)
+            previous = current
+        if previous is not None:
+            _score_image(out, previous, pairs, diameter, inputs.delta)
     return out
 
 
-def _image_vsd(
-    out: F64,
+@dataclass(frozen=True)
+class _Pairs:
+    """The poses of the pairs: estimate ``e_idx[p]`` with GT ``g_idx[p]``."""
+
+    est: PoseEstimates
+    gt: GtTable
+    e_idx: I64
+    g_idx: I64
+
+
+@dataclass(frozen=True)
+class _ImageRenders:
+    """One image's rendered pairs and its depth box, being decoded (None: nothing rendered)."""
+
+    group: I64
+    K: F64
+    est_win: list[WindowDepth]
+    gt_win: dict[int, WindowDepth]
+    span: tuple[int, int, int, int] | None
+    depth: Future[NDArray[np.float32]] | None
+    depth_scale: float
+
+
+def _render_image(
     group: I64,
-    est: PoseEstimates,
-    gt: GtTable,
-    e_idx: I64,
-    g_idx: I64,
-    diameter: F64,
+    pairs: _Pairs,
     inputs: VsdInputs,
     render: WindowRenderer,
-) -> None:
-    """VSD of the pairs ``group`` (all in one image) into the columns ``group`` of ``out``."""
-    dataset = inputs.dataset
-    first = int(g_idx[group[0]])
+    decoder: ThreadPoolExecutor,
+) -> _ImageRenders:
+    """Render the pairs ``group`` (all in one image) and start decoding its depth box."""
+    dataset, est, gt = inputs.dataset, pairs.est, pairs.gt
+    first = int(pairs.g_idx[group[0]])
     scene_id, im_id = int(gt.scene_id[first]), int(gt.im_id[first])
     scene = dataset.scene(scene_id)
     cam = scene.camera[im_id]
@@ -385,23 +414,33 @@ def _image_vsd(
     gt_win: dict[int, WindowDepth] = {}
     est_win: list[WindowDepth] = []
     for p in group.tolist():  # one render per pose: the renderer's unit of work
-        g, e = int(g_idx[p]), int(e_idx[p])
+        g, e = int(pairs.g_idx[p]), int(pairs.e_idx[p])
         model = dataset.model(int(gt.obj_id[g]))
         if g not in gt_win:
             gt_win[g] = render(model, gt.R[g], gt.t[g], cam.K, w, h)
         est_win.append(render(model, est.R[e], est.t[e], cam.K, w, h))
     span = _span([*gt_win.values(), *est_win])
-    if span is None:  # no model pixel in the image: every error stays 1
+    depth = None
+    if span is not None:
+        depth = decoder.submit(load_depth_window, depth_path, span[:2], span[2:])
+    return _ImageRenders(group, cam.K, est_win, gt_win, span, depth, cam.depth_scale)
+
+
+def _score_image(
+    out: F64, image: _ImageRenders, pairs: _Pairs, diameter: F64, delta: float
+) -> None:
+    """VSD of one image's rendered pairs into their columns of ``out``."""
+    if image.span is None or image.depth is None:  # no model pixel: every error stays 1
         return
-    r0, r1, c0, c1 = span
-    depth = load_depth_window(depth_path, (r0, r1), (c0, c1)) * cam.depth_scale
+    r0, _, c0, _ = image.span
+    depth = image.depth.result() * image.depth_scale
     taus = np.asarray(VSD_TAUS)
-    for p, e_w in zip(group.tolist(), est_win, strict=True):
-        g_w = gt_win[int(g_idx[p])]
+    for p, e_w in zip(image.group.tolist(), image.est_win, strict=True):
+        g_w = image.gt_win[int(pairs.g_idx[p])]
         box = _span([e_w, g_w])
         if box is None:
             continue
         test = depth[box[0] - r0 : box[1] - r0, box[2] - c0 : box[3] - c0]
-        out[:, p] = vsd_in_window(test, _pasted(e_w, box), _pasted(g_w, box), cam.K,
-                                  (box[0], box[2]), inputs.delta, taus,
+        out[:, p] = vsd_in_window(test, _pasted(e_w, box), _pasted(g_w, box), image.K,
+                                  (box[0], box[2]), delta, taus,
                                   diameter=float(diameter[p]))  # fmt: skip
