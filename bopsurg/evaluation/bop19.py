@@ -357,7 +357,9 @@ def vsd_errors(
     pairs = _Pairs(est, gt, e_idx, g_idx)
     with ThreadPoolExecutor(max_workers=1) as decoder:
         previous: _ImageRenders | None = None
-        for group in tqdm(groups, desc="VSD", unit="img", disable=not inputs.progress):
+        # no bar object without a bar: tqdm's lock would import multiprocessing
+        bar = tqdm(groups, desc="VSD", unit="img") if inputs.progress else groups
+        for group in bar:
             current = _render_image(group, pairs, inputs, render, decoder)
             if previous is not None:
                 _score_image(out, previous, pairs, diameter, inputs.delta)
