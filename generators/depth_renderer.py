@@ -60,10 +60,11 @@ _VIEW = view_matrix(np.eye(4))
 def quaternion_xyzw(R: F64) -> list[float]:
     """Unit quaternion (x, y, z, w) of a rotation matrix, bit for bit scipy's
     ``Rotation.from_matrix(R).as_quat()`` (same case choice and operations), without importing
-    scipy for it; matrices not orthogonal to 1e-12, which scipy first projects onto the
-    rotations, are handed to scipy itself."""
+    scipy for it; matrices not orthogonal to 1e-12 (scipy first projects them onto the
+    rotations) and reflections (scipy refuses them) are handed to scipy itself."""
     eye = np.eye(3)
-    if not np.all(np.abs(R @ R.T - eye) <= 1e-12 + 1e-5 * eye):  # np.isclose(., eye, atol=1e-12)
+    orthogonal = np.all(np.abs(R @ R.T - eye) <= 1e-12 + 1e-5 * eye)  # isclose, atol=1e-12
+    if not orthogonal or np.linalg.det(R) <= 0:  # scipy projects, or raises on reflections
         from scipy.spatial.transform import Rotation
 
         quat: list[float] = Rotation.from_matrix(R).as_quat().tolist()

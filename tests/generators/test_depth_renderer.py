@@ -280,6 +280,8 @@ def test_quaternions_are_scipys_bit_for_bit():
     for R in [*Rs, *axes, *noisy]:
         want = Rotation.from_matrix(R).as_quat()
         np.testing.assert_array_equal(np.array(quaternion_xyzw(R)), want)
+    with pytest.raises(ValueError, match="determinant"):
+        quaternion_xyzw(np.diag([1.0, 1.0, -1.0]))
 
 
 @pytest.mark.slow
