@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import math
 import tempfile
 import weakref
 from dataclasses import dataclass
@@ -27,25 +28,66 @@ from typing import Any
 import numpy as np
 import pybullet as p
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.meshes import ObjectModel
-from bopsurg.generators.pybullet_backend import (
+from bopsurg.generators.pybullet_render import (
     PIXEL_OFFSETS,
     ClosesOnExit,
     projection_matrix,
-    render_in_window,
+    render_window_depth,
     view_matrix,
     write_obj,
 )
-from bopsurg.metrics.point_subsets import hull_vertices
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+#: Depth (mm) of a window of the image and its top-left (row, column); None: not seen.
+WindowDepth = tuple[F64, tuple[int, int]] | None
 
 #: Closest near plane, mm: parts of a model nearer to the camera than this are clipped.
 NEAR_MIN_MM = 1.0
+
+#: Models with more vertices bound their renders' windows with their convex hull's vertices
+#: (fewer points to project per render, one Qhull call per model); smaller ones use them all,
+#: which bounds the projection identically (its extremes lie at hull vertices).
+HULL_MIN_VERTICES = 4096
+
+#: The camera is the world frame (the model sits at its pose in it).
+_VIEW = view_matrix(np.eye(4))
+
+
+def quaternion_xyzw(R: F64) -> list[float]:
+    """Unit quaternion (x, y, z, w) of a rotation matrix, bit for bit scipy's
+    ``Rotation.from_matrix(R).as_quat()`` (same case choice and operations), without importing
+    scipy for it; matrices not orthogonal to 1e-12 (scipy first projects them onto the
+    rotations) and reflections (scipy refuses them) are handed to scipy itself."""
+    eye = np.eye(3)
+    orthogonal = np.all(np.abs(R @ R.T - eye) <= 1e-12 + 1e-5 * eye)  # isclose, atol=1e-12
+    if not orthogonal or np.linalg.det(R) <= 0:  # scipy projects, or raises on reflections
+        from scipy.spatial.transform import Rotation
+
+        quat: list[float] = Rotation.from_matrix(R).as_quat().tolist()
+        return quat
+    m = R.tolist()
+    trace = m[0][0] + m[1][1] + m[2][2]
+    decision = (m[0][0], m[1][1], m[2][2], trace)
+    choice = decision.index(max(decision))  # the first maximum, as argmax
+    q = [0.0, 0.0, 0.0, 0.0]
+    if choice != 3:
+        i = choice
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[i] = 1 - trace + 2 * m[i][i]
+        q[j] = m[j][i] + m[i][j]
+        q[k] = m[k][i] + m[i][k]
+        q[3] = m[k][j] - m[j][k]
+    else:
+        q[0] = m[2][1] - m[1][2]
+        q[1] = m[0][2] - m[2][0]
+        q[2] = m[1][0] - m[0][1]
+        q[3] = 1 + trace
+    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return [x / norm for x in q]
 
 
 @dataclass(frozen=True)
@@ -130,7 +172,12 @@ class PyBulletDepthRenderer(ClosesOnExit):  # type: ignore[misc, unused-ignore]
         center = 0.5 * (lo + hi)
         radius = float(np.linalg.norm(model.pts - center, axis=1).max())
         log.debug("uploaded a model: %d vertices, %d faces", model.n_vertices, len(model.faces))
-        return _Mesh(body=body, hull=hull_vertices(model.pts) * 1e-3, center=center, radius=radius)
+        bound = model.pts
+        if model.n_vertices > HULL_MIN_VERTICES:
+            from bopsurg.metrics.point_subsets import hull_vertices  # scipy: big models only
+
+            bound = hull_vertices(model.pts)
+        return _Mesh(body=body, hull=bound * 1e-3, center=center, radius=radius)
 
     def render_depth(
         self,
@@ -156,17 +203,42 @@ class PyBulletDepthRenderer(ClosesOnExit):  # type: ignore[misc, unused-ignore]
         Raises:
             ValueError: The model has no faces.
         """
+        out = np.zeros((height, width))
+        rendered = self.render_depth_window(model, R, t, K, width, height)
+        if rendered is not None:
+            depth, (r0, c0) = rendered
+            out[r0 : r0 + depth.shape[0], c0 : c0 + depth.shape[1]] = depth
+        return out
+
+    def render_depth_window(
+        self,
+        model: ObjectModel,
+        R: ArrayLike,
+        t: ArrayLike,
+        K: ArrayLike,
+        width: int,
+        height: int,
+    ) -> WindowDepth:
+        """:meth:`render_depth` cut to a window that holds every pixel the model covers.
+
+        Returns:
+            The window's depth (mm, 0 where the model is absent) and the (row, column) of its
+            top-left pixel in the (height, width) image; None when the model cannot be seen
+            (wholly behind the camera or off the image).
+
+        Raises:
+            ValueError: The model has no faces.
+        """
         mesh = self._mesh(model)
         assert self._client is not None
         R = np.asarray(R, dtype=np.float64).reshape(3, 3)
         t_mm = np.asarray(t, dtype=np.float64).reshape(3)
         K = np.asarray(K, dtype=np.float64)
-        out = np.zeros((height, width))
         # Near and far planes hug the bounding sphere: depth precision scales with z²/near.
         zc = float(R[2] @ mesh.center + t_mm[2])
         z_far = zc + mesh.radius
         if z_far <= NEAR_MIN_MM:
-            return out
+            return None
         near = 1e-3 * max(0.99 * (zc - mesh.radius), NEAR_MIN_MM)
         far = 1e-3 * (1.01 * z_far + 1.0)
         T = np.eye(4)
@@ -182,20 +254,20 @@ class PyBulletDepthRenderer(ClosesOnExit):  # type: ignore[misc, unused-ignore]
                     )
                 p.changeVisualShape(mesh.body, -1, rgbaColor=[1, 1, 1, 1], physicsClientId=client)
                 self._shown = mesh.body
-            # The camera is the world frame; the model sits at its pose in it.
-            q = Rotation.from_matrix(R).as_quat()
             p.resetBasePositionAndOrientation(
-                mesh.body, T[:3, 3].tolist(), q.tolist(), physicsClientId=client
+                mesh.body, T[:3, 3].tolist(), quaternion_xyzw(R), physicsClientId=client
             )
             _, _, _, depth, seg = p.getCameraImage(
                 w,
                 h,
-                viewMatrix=view_matrix(np.eye(4)),
+                viewMatrix=_VIEW,
                 projectionMatrix=projection_matrix(Kw, w, h, near, far, PIXEL_OFFSETS["tiny"]),
                 renderer=p.ER_TINY_RENDERER,
                 physicsClientId=client,
             )
             return depth, seg
 
-        depth: F64 = render_in_window(mesh.hull, T, K, (width, height), (near, far), render)
-        return depth
+        rendered: WindowDepth = render_window_depth(
+            mesh.hull, T, K, (width, height), (near, far), render
+        )
+        return rendered

@@ -53,17 +53,15 @@ import os
 import sys
 import tempfile
 import weakref
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
-from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 import pybullet as p
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.generators.backend import (
@@ -76,6 +74,18 @@ from bopsurg.generators.backend import (
     SceneState,
     default_state,
 )
+from bopsurg.generators.pybullet_render import (
+    PIXEL_OFFSETS,
+    ClosesOnExit,
+    WindowRender,
+    depth_buffer_to_mm,
+    projection_matrix,
+    render_in_window,
+    render_window,
+    render_window_depth,
+    view_matrix,
+    write_obj,
+)
 from bopsurg.generators.pybullet_scene import (
     SceneAssets,
     VisualPart,
@@ -85,8 +95,6 @@ from bopsurg.generators.pybullet_scene import (
 from bopsurg.metrics.point_subsets import hull_vertices
 
 if TYPE_CHECKING:  # typing.Self is Python 3.11+; annotations are not evaluated at run time
-    from typing_extensions import Self
-
     from bopsurg.generators.domain import Appearance
     from bopsurg.generators.pybullet_domain import ThreadBodies
 
@@ -100,164 +108,10 @@ OPTION_KEYS = ("renderer", "texture_seed", "light_distance")
 #: without a GPU).
 RENDERERS = ("tiny", "egl")
 
-#: Principal-point offsets (x, y), px, that make each renderer follow OpenCV's convention.
-PIXEL_OFFSETS = {"tiny": (0.0, 1.0), "egl": (0.5, 0.5)}
-
 # The EGL plugin keeps one renderer per process, shared by every client that loads it:
 # two EGL scenes would draw into each other, and unloading one crashes the other. So at most
 # one live backend per process may use it.
 _egl_owner: weakref.ref[PyBulletBackend] | None = None
-
-# OpenCV camera axes (x right, y down, z forward) -> OpenGL ones (y up, z backward).
-_CV2GL = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-def projection_matrix(
-    K: F64, width: int, height: int, near: float, far: float, offset: tuple[float, float]
-) -> list[float]:
-    """OpenGL projection (column-major, as pybullet wants it) of an OpenCV camera.
-
-    Args:
-        K: (3, 3) intrinsics, px.
-        width, height: Image size, px.
-        near, far: Clipping distances, m.
-        offset: Principal-point offset of the renderer, px (:data:`PIXEL_OFFSETS`).
-    """
-    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-    ox, oy = offset
-    P = np.array(
-        [
-            [2 * fx / width, -2 * skew / width, 1 - 2 * (cx + ox) / width, 0.0],
-            [0.0, 2 * fy / height, 2 * (cy + oy) / height - 1, 0.0],
-            [0.0, 0.0, -(far + near) / (far - near), -2 * far * near / (far - near)],
-            [0.0, 0.0, -1.0, 0.0],
-        ]
-    )
-    return P.T.ravel().tolist()
-
-
-def view_matrix(T_world_cam: F64) -> list[float]:
-    """OpenGL view matrix (column-major) of a camera pose with OpenCV axes, m."""
-    values: list[float] = (_CV2GL @ np.linalg.inv(T_world_cam)).T.ravel().tolist()
-    return values
-
-
-def depth_buffer_to_mm(
-    buffer: NDArray[Any], near: float, far: float, seg: NDArray[Any] | None = None
-) -> F64:
-    """Camera-frame z (mm) from a [0, 1] depth buffer, 0 on the background.
-
-    Args:
-        buffer: Depth buffer from ``getCameraImage``.
-        near, far: The projection's clipping distances, m.
-        seg: The segmentation buffer of the same render: background is where it is −1. Without
-            it, background is where the buffer is within 1e-6 of 1 (TinyRenderer's cleared
-            buffer reads 1 − 6e-8 after float32 rounding, not exactly 1).
-    """
-    d = np.asarray(buffer, dtype=np.float64)
-    background = (np.asarray(seg) < 0) if seg is not None else (d >= 1.0 - 1e-6)
-    # z = far·near / (far − (far − near)·d), in place (this runs on every frame)
-    d *= -(far - near)
-    d += far
-    z = np.divide(1000.0 * far * near, d, out=d)
-    z[background] = 0.0
-    return z
-
-
-def render_window(
-    points: F64, T_cam_obj: F64, K: F64, width: int, height: int, near: float
-) -> tuple[int, int, int, int] | None:
-    """Pixel window ``(u0, v0, u1, v1)`` (end exclusive) that contains an object's projection.
-
-    Args:
-        points: (N, 3) points whose convex hull contains the object (its frame), m.
-        T_cam_obj: Object pose in the camera, m.
-        K: Intrinsics, px.
-        width, height: Canvas size, px.
-        near: Near clipping distance, m.
-
-    Returns:
-        The window clipped to the canvas (the whole canvas when a point is not in front of
-        the near plane), or None when the projection misses the canvas.
-    """
-    P = points @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
-    if P[:, 2].min() <= near:
-        return 0, 0, width, height
-    u = K[0, 0] * P[:, 0] / P[:, 2] + K[0, 1] * P[:, 1] / P[:, 2] + K[0, 2]
-    v = K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]
-    # Pixel centres are at integer coordinates; one pixel of margin against rounding.
-    u0 = max(int(np.floor(u.min())) - 1, 0)
-    v0 = max(int(np.floor(v.min())) - 1, 0)
-    u1 = min(int(np.ceil(u.max())) + 2, width)
-    v1 = min(int(np.ceil(v.max())) + 2, height)
-    if u0 >= u1 or v0 >= v1:
-        return None
-    return u0, v0, u1, v1
-
-
-#: Renders depth and segmentation buffers of a window: ``(K of the window, width, height)``.
-WindowRender = Callable[[F64, int, int], tuple[NDArray[Any], NDArray[Any]]]
-
-
-def render_in_window(
-    points: F64,
-    T_cam_obj: F64,
-    K: F64,
-    size: tuple[int, int],
-    clip: tuple[float, float],
-    render: WindowRender,
-) -> F64:
-    """Depth (mm) of one object on a canvas, rendering only the window it can cover.
-
-    Args:
-        points: (N, 3) points whose convex hull contains the object (its frame), m.
-        T_cam_obj: Object pose in the camera, m.
-        K: Intrinsics of the canvas, px.
-        size: (width, height) of the canvas, px.
-        clip: (near, far) clipping distances of the render, m.
-        render: Renders the window's buffers; called once, only if the object can be seen.
-
-    Returns:
-        (height, width) z-depth, mm, 0 where the object is absent.
-    """
-    width, height = size
-    near, far = clip
-    out = np.zeros((height, width))
-    window = render_window(points, T_cam_obj, K, width, height, near)
-    if window is None:
-        return out
-    u0, v0, u1, v1 = window
-    Kw = K.copy()
-    Kw[0, 2] -= u0
-    Kw[1, 2] -= v0
-    w, h = u1 - u0, v1 - v0
-    depth, seg = render(Kw, w, h)
-    out[v0:v1, u0:u1] = depth_buffer_to_mm(
-        np.asarray(depth).reshape(h, w), near, far, np.asarray(seg).reshape(h, w)
-    )
-    return out
-
-
-class ClosesOnExit:
-    """``with`` support and closing on garbage collection, for classes with ``close()``."""
-
-    def close(self) -> None:
-        """Release resources (idempotent)."""
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        with contextlib.suppress(Exception):
-            self.close()
 
 
 @contextlib.contextmanager
@@ -296,52 +150,6 @@ def load_egl(client: int) -> int:
     return int(plugin)
 
 
-def write_obj(
-    path: Path, model: ObjectModel, uvs: F64 | None = None, *, double_sided: bool = False
-) -> None:
-    """Write a model as a Wavefront OBJ in **metres** (pybullet reads meshes from files).
-
-    Mesh files rather than ``createVisualShape(vertices=...)`` arrays: the EGL plugin crashes
-    on array meshes, and arrays are limited to about 130k vertices. Nine significant digits
-    round-trip float32, which is what pybullet keeps.
-
-    Args:
-        path: Output file.
-        model: Mesh in mm.
-        uvs: (V, 2) texture coordinates, or None.
-        double_sided: Also write every triangle with the opposite winding (TinyRenderer culls
-            back faces, so a mesh with inconsistent winding would lose faces).
-    """
-    faces = model.faces
-    if double_sided:
-        faces = np.concatenate([faces, faces[:, ::-1]])
-    lines = [_rows("v", model.pts * 1e-3)]
-    if uvs is not None:
-        lines.append(_rows("vt", uvs))
-    if model.normals is not None:
-        lines.append(_rows("vn", model.normals))
-    f = faces + 1
-    if uvs is not None and model.normals is not None:
-        corner = np.repeat(f, 3, axis=1)  # a/a/a: same index for position, uv and normal
-        lines.append(_rows("f", corner, "%d/%d/%d %d/%d/%d %d/%d/%d"))
-    elif model.normals is not None:
-        lines.append(_rows("f", np.repeat(f, 2, axis=1), "%d//%d %d//%d %d//%d"))
-    elif uvs is not None:
-        lines.append(_rows("f", np.repeat(f, 2, axis=1), "%d/%d %d/%d %d/%d"))
-    else:
-        lines.append(_rows("f", f, "%d %d %d"))
-    path.write_text("".join(lines))
-
-
-def _rows(tag: str, values: NDArray[Any], fmt: str | None = None) -> str:
-    """OBJ lines ``tag v0 v1 ...`` of a 2D array (vectorised formatting)."""
-    if len(values) == 0:
-        return ""
-    fmt = fmt or " ".join(["%.9g"] * values.shape[1])
-    template = f"{tag} {fmt}\n"
-    return "".join(template * len(values)) % tuple(values.ravel().tolist())
-
-
 def upload_part(client: int, part: VisualPart, folder: Path, texture: int | None = None) -> int:
     """Create a base-only multibody (no collision, no mass) showing one part, m.
 
@@ -374,6 +182,8 @@ def upload_part(client: int, part: VisualPart, folder: Path, texture: int | None
 
 def _quaternions(poses: list[F64]) -> NDArray[np.float64]:
     """(N, 4) xyzw quaternions of 4×4 poses (one scipy call for all)."""
+    from scipy.spatial.transform import Rotation  # here: the depth renderer needs no scipy
+
     quats: NDArray[np.float64] = Rotation.from_matrix(
         np.stack([T[:3, :3] for T in poses])
     ).as_quat()
@@ -421,7 +231,7 @@ def parse_options(options: Mapping[str, Any]) -> PyBulletOptions:
     return PyBulletOptions(renderer, texture_seed, light_distance)
 
 
-class PyBulletBackend(ClosesOnExit):
+class PyBulletBackend(ClosesOnExit):  # type: ignore[misc, unused-ignore]
     """The built-in rendering backend (pybullet, headless, one DIRECT client per instance).
 
     Usage::
@@ -713,7 +523,7 @@ class PyBulletBackend(ClosesOnExit):
         def render(Kw: F64, w: int, h: int) -> tuple[NDArray[Any], NDArray[Any]]:
             return self._render_solo(name, self._camera_args(camera, Kw, w, h, "tiny"))
 
-        return render_in_window(
+        depth: F64 = render_in_window(
             self._hulls[name],
             T_cam_obj,
             K,
@@ -721,6 +531,7 @@ class PyBulletBackend(ClosesOnExit):
             (camera.near, camera.far),
             render,
         )
+        return depth
 
     # ------------------------------------------------------- domain randomisation
 
@@ -771,6 +582,7 @@ class PyBulletBackend(ClosesOnExit):
 __all__ = [
     "ARMS",
     "OPTION_KEYS",
+    "PIXEL_OFFSETS",
     "ClosesOnExit",
     "PyBulletBackend",
     "PyBulletOptions",
@@ -779,5 +591,7 @@ __all__ = [
     "projection_matrix",
     "render_in_window",
     "render_window",
+    "render_window_depth",
     "view_matrix",
+    "write_obj",
 ]

@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.atomic import write_bytes
 from bopsurg.bop.files import read_bytes
+from bopsurg.bop.png_rows import decode_gray_window
 from bopsurg.errors import DatasetError, ShapeError
 
 #: Largest value a 16-bit depth PNG can store.
@@ -65,6 +66,45 @@ def load_depth(path: str | Path) -> NDArray[np.float32]:
         DatasetError: Missing, unreadable or multi-channel file.
     """
     im = _decode(path, cv2.IMREAD_UNCHANGED)
+    if im.ndim != 2:
+        raise DatasetError(
+            f"depth image must be single-channel, got {im.shape[2]} channels", path=path
+        )
+    return im.astype(np.float32)
+
+
+def _decode_window(
+    path: str | Path, rows: tuple[int, int], cols: tuple[int, int] | None
+) -> NDArray[np.generic]:
+    """A window of an image's stored values: only as much of a grayscale PNG as it needs,
+    anything else decoded fully and cut."""
+    p = Path(path)
+    data = read_bytes(p, DatasetError, expected="an image file", noun="image")
+    try:
+        window = decode_gray_window(data, rows, cols)
+    except ValueError as e:
+        raise DatasetError(f"cannot decode image ({e})", path=p) from None
+    if window is not None:
+        return window
+    im = _decode(p, cv2.IMREAD_UNCHANGED)
+    r = slice(max(rows[0], 0), max(rows[1], 0))
+    return im[r] if cols is None else im[r, max(cols[0], 0) : max(cols[1], 0)]
+
+
+def load_depth_window(
+    path: str | Path, rows: tuple[int, int], cols: tuple[int, int] | None = None
+) -> NDArray[np.float32]:
+    """:func:`load_depth`, cut to a window: ``load_depth(path)[r0:r1, c0:c1]``, faster.
+
+    Args:
+        path: A single-channel depth image.
+        rows: (first, end) rows, px, end exclusive (clipped to the image).
+        cols: (first, end) columns, px, end exclusive (default: all).
+
+    Raises:
+        DatasetError: Missing, unreadable, corrupt or multi-channel file.
+    """
+    im = _decode_window(path, rows, cols)
     if im.ndim != 2:
         raise DatasetError(
             f"depth image must be single-channel, got {im.shape[2]} channels", path=path
@@ -117,6 +157,24 @@ def load_mask(path: str | Path) -> NDArray[np.bool_]:
         DatasetError: Missing or unreadable file.
     """
     im = _decode(path, cv2.IMREAD_UNCHANGED)
+    mask: NDArray[np.bool_] = np.any(im[:, :, :3] != 0, axis=2) if im.ndim == 3 else im != 0
+    return mask
+
+
+def load_mask_window(
+    path: str | Path, rows: tuple[int, int], cols: tuple[int, int] | None = None
+) -> NDArray[np.bool_]:
+    """:func:`load_mask`, cut to a window: ``load_mask(path)[r0:r1, c0:c1]``, faster.
+
+    Args:
+        path: A mask image.
+        rows: (first, end) rows, px, end exclusive (clipped to the image).
+        cols: (first, end) columns, px, end exclusive (default: all).
+
+    Raises:
+        DatasetError: Missing, unreadable or corrupt file.
+    """
+    im = _decode_window(path, rows, cols)
     mask: NDArray[np.bool_] = np.any(im[:, :, :3] != 0, axis=2) if im.ndim == 3 else im != 0
     return mask
 

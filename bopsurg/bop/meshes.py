@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import ConvexHull, QhullError
 
 from bopsurg.atomic import write_bytes
 from bopsurg.bop._validate import (
@@ -449,6 +448,9 @@ def _extreme_points(pts: F64) -> F64:
     """A subset of ``pts`` that contains both ends of every diameter (hull vertices)."""
     if len(pts) <= 4:
         return pts
+    # scipy on first use: reading models (every 'bopsurg eval') needs no Qhull.
+    from scipy.spatial import ConvexHull, QhullError
+
     hull: F64
     try:
         hull = pts[ConvexHull(pts).vertices]

@@ -199,20 +199,22 @@ def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
     from bopsurg._version import __version__
     from bopsurg.bop.targets import load_image_targets, load_targets
-    from bopsurg.cli.eval_coco import run_coco
     from bopsurg.cli.eval_stats import write_intervals
     from bopsurg.evaluation.coco_eval import is_coco_results
     from bopsurg.evaluation.device import metric_device
     from bopsurg.evaluation.runner import evaluate, evaluate_distributed, write_evaluation
     from bopsurg.evaluation.summary import format_table
     from bopsurg.evaluation.tasks import add_detection_scores, resolve_tasks
-    from bopsurg.executors import make_executor
 
     t0 = time.perf_counter()
     executor = None
     if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
+        from bopsurg.executors import make_executor
+
         executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
     if is_coco_results(args.results):  # 2D tasks: a COCO JSON, recognised by its content
+        from bopsurg.cli.eval_coco import run_coco
+
         return run_coco(args)
     tasks = resolve_tasks(args.task)
     dataset, est = load_dataset_and_results(args)

@@ -18,15 +18,15 @@ silhouette degenerates to a line). For every GT instance this module computes:
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
-from scipy.spatial.distance import pdist, squareform
 
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.images import load_mask
+from bopsurg.bop.images import load_mask_window
 from bopsurg.evaluation.summary import describe
 from bopsurg.metrics.registry import table_metrics
 
@@ -55,7 +55,9 @@ def model_keypoints(model_info: Mapping[str, Any], pts: F64) -> tuple[F64, F64]:
         cand = np.sort(ConvexHull(pts).vertices)
     except QhullError:
         cand = np.arange(pts.shape[0])
-    d = squareform(pdist(pts[cand]))
+    c = pts[cand]
+    diff = c[:, None, :] - c[None, :, :]
+    d = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))  # pairwise distances, as pdist's
     i, j = np.unravel_index(np.argmax(d), d.shape)
     a, b = sorted((int(cand[i]), int(cand[j])))
     return pts[b].copy(), pts[a].copy()
@@ -84,13 +86,21 @@ def view_angle_deg(R: F64, t: F64, normal: F64) -> F64:
     return result
 
 
-def _on_mask(mask: NDArray[np.bool_], uv: F64) -> bool:
-    h, w = mask.shape
-    if not np.all(np.isfinite(uv)):
-        return False
-    u, v = int(np.rint(uv[0])), int(np.rint(uv[1]))
-    r0, r1, c0, c1 = max(v - 1, 0), min(v + 2, h), max(u - 1, 0), min(u + 2, w)
-    return r0 < r1 and c0 < c1 and bool(mask[r0:r1, c0:c1].any())
+def _ends_on_mask(path: Path, uv: F64) -> tuple[bool, bool]:
+    """Whether each of the (2, 2) projections ``uv`` (px) falls on the mask in ``path``: any
+    pixel of the 3×3 neighbourhood of the rounded projection; only that window is decoded."""
+    finite = np.all(np.isfinite(uv), axis=1)
+    # Far off the image either way; clipping keeps the rounding in int64's range.
+    px = np.rint(np.clip(np.where(finite[:, None], uv, 0.0), -8.0, 1e7)).astype(np.int64)
+    lo = np.maximum(px[finite].min(axis=0, initial=0) - 1, 0)
+    hi = px[finite].max(axis=0, initial=-2) + 2
+    mask = load_mask_window(path, (int(lo[1]), int(hi[1])), (int(lo[0]), int(hi[0])))
+    ends = []
+    for (u, v), ok in zip(px.tolist(), finite.tolist(), strict=True):  # the two ends
+        r0, r1 = max(v - 1 - int(lo[1]), 0), min(v + 2 - int(lo[1]), mask.shape[0])
+        c0, c1 = max(u - 1 - int(lo[0]), 0), min(u + 2 - int(lo[0]), mask.shape[1])
+        ends.append(ok and r0 < r1 and c0 < c1 and bool(mask[r0:r1, c0:c1].any()))
+    return ends[0], ends[1]
 
 
 def instance_ambiguity(
@@ -134,8 +144,7 @@ def instance_ambiguity(
             path = scene.mask_visib_path(int(im_ids[k]), int(gt_ids[k]))
             if not path.exists():
                 continue
-            mask = load_mask(path)
-            ends[k] = _on_mask(mask, uv[k, 0]), _on_mask(mask, uv[k, 1])
+            ends[k] = _ends_on_mask(path, uv[k])
         out.iloc[sel, 0] = ends[:, 0]
         out.iloc[sel, 1] = ends[:, 1]
     return out

@@ -18,8 +18,10 @@ of the reference toolkit (``visib_gt_min = -1``, ``n_top = -1``, targets from
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -27,14 +29,15 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from bopsurg.bop.dataset import BopDataset
-from bopsurg.bop.images import load_depth
+from bopsurg.bop.images import image_size, load_depth_window
+from bopsurg.bop.meshes import ObjectModel
 from bopsurg.bop.results import PoseEstimates
 from bopsurg.bop.targets import Target
 from bopsurg.errors import DatasetError
 from bopsurg.evaluation.matching import greedy_match, valid_gts_localization
 from bopsurg.evaluation.pair_errors import ModelCache, candidate_pairs, pair_errors
 from bopsurg.evaluation.tables import GtTable, estimates_frame, rank_within_groups
-from bopsurg.metrics.vsd import vsd
+from bopsurg.metrics.vsd import vsd_in_window
 from bopsurg.plugins import DepthRenderer
 
 F64 = NDArray[np.float64]
@@ -282,13 +285,61 @@ def recall_curves(
     return curves
 
 
+#: A model's depth in a window of the image (mm) and the window's top-left (row, column);
+#: None when the model is not seen.
+WindowDepth = tuple[F64, tuple[int, int]] | None
+WindowRenderer = Callable[[ObjectModel, F64, F64, F64, int, int], WindowDepth]
+
+
+def window_renderer(renderer: DepthRenderer) -> WindowRenderer:
+    """The renderer's ``render_depth_window`` when it has one, else its whole-image
+    ``render_depth`` cut to the bounding box of the model's pixels."""
+    windowed = getattr(renderer, "render_depth_window", None)
+    if callable(windowed):
+        return cast(WindowRenderer, windowed)
+
+    def render(model: ObjectModel, R: F64, t: F64, K: F64, width: int, height: int) -> WindowDepth:
+        depth = np.asarray(renderer.render_depth(model, R, t, K, width, height))
+        rows = np.flatnonzero((depth > 0).any(axis=1))
+        if rows.size == 0:
+            return None
+        cols = np.flatnonzero((depth > 0).any(axis=0))
+        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        return depth[r0:r1, c0:c1], (r0, c0)
+
+    return render
+
+
+def _span(windows: Sequence[WindowDepth]) -> tuple[int, int, int, int] | None:
+    """(row0, row1, col0, col1), ends exclusive, of the box around the windows; None if none."""
+    seen = [w for w in windows if w is not None]
+    if not seen:
+        return None
+    r0 = min(o[0] for _, o in seen)
+    c0 = min(o[1] for _, o in seen)
+    r1 = max(o[0] + d.shape[0] for d, o in seen)
+    c1 = max(o[1] + d.shape[1] for d, o in seen)
+    return r0, r1, c0, c1
+
+
+def _pasted(win: WindowDepth, box: tuple[int, int, int, int]) -> F64:
+    """A model's window depth on the box (0 outside the window)."""
+    r0, r1, c0, c1 = box
+    out = np.zeros((r1 - r0, c1 - c0))
+    if win is not None:
+        depth, (wr, wc) = win
+        out[wr - r0 : wr - r0 + depth.shape[0], wc - c0 : wc - c0 + depth.shape[1]] = depth
+    return out
+
+
 def vsd_errors(
     est: PoseEstimates, gt: GtTable, e_idx: I64, g_idx: I64, diameter: F64, inputs: VsdInputs
 ) -> F64:
     """VSD errors (τ × P) of the pairs, 1 where the sphere projections do not overlap.
 
-    Pairs are rendered image by image (the scene depth is loaded once per image, each GT pose
-    rendered once).
+    Pairs are rendered image by image, each GT pose once, each model only in the window it
+    covers; of the image's depth only the box around those windows is decoded, in a second
+    thread while the next image renders (decoding releases the GIL).
 
     Raises:
         DatasetError: An image without ``depth_scale``.
@@ -297,30 +348,101 @@ def vsd_errors(
     out = np.ones((taus.size, e_idx.shape[0]))
     overlap = sphere_projections_overlap(est.t[e_idx], gt.t[g_idx], 0.5 * diameter)
     todo = np.flatnonzero(overlap)
-    images = pd.DataFrame({"s": gt.scene_id[g_idx[todo]], "i": gt.im_id[g_idx[todo]], "p": todo})
-    groups = images.groupby(["s", "i"], sort=True)
-    dataset, renderer = inputs.dataset, inputs.renderer
-    for (scene_id, im_id), grp in tqdm(
-        groups, total=groups.ngroups, desc="VSD", unit="img", disable=not inputs.progress
-    ):
-        scene = dataset.scene(int(scene_id))
-        cam = scene.camera[int(im_id)]
-        if cam.depth_scale is None:
-            raise DatasetError(
-                "depth_scale is missing (needed for VSD)",
-                path=scene.scene_dir / "scene_camera.json",
-                field=f"{im_id}/depth_scale",
-            )
-        depth = load_depth(scene.depth_path(int(im_id))) * cam.depth_scale
-        h, w = depth.shape
-        gt_cache: dict[int, F64] = {}
-        for p in grp["p"].to_numpy():
-            g, e = int(g_idx[p]), int(e_idx[p])
-            model = dataset.model(int(gt.obj_id[g]))
-            if g not in gt_cache:
-                gt_cache[g] = renderer.render_depth(model, gt.R[g], gt.t[g], cam.K, w, h)
-            d_est = renderer.render_depth(model, est.R[e], est.t[e], cam.K, w, h)
-            out[:, p] = vsd(
-                depth, d_est, gt_cache[g], cam.K, inputs.delta, taus, diameter=float(diameter[p])
-            )
+    scene_of, im_of = gt.scene_id[g_idx[todo]], gt.im_id[g_idx[todo]]
+    order = np.lexsort((im_of, scene_of))  # pairs grouped by image, images in order
+    starts = np.flatnonzero(np.r_[True, np.diff(scene_of[order]) != 0]
+                            | np.r_[True, np.diff(im_of[order]) != 0])  # fmt: skip
+    render = window_renderer(inputs.renderer)
+    groups = np.split(todo[order], starts[1:])
+    pairs = _Pairs(est, gt, e_idx, g_idx)
+    with ThreadPoolExecutor(max_workers=1) as decoder:
+        previous: _ImageRenders | None = None
+        # no bar object without a bar: tqdm's lock would import multiprocessing
+        bar = tqdm(groups, desc="VSD", unit="img") if inputs.progress else groups
+        for group in bar:
+            current = _render_image(group, pairs, inputs, render, decoder)
+            if previous is not None:
+                _score_image(out, previous, pairs, diameter, inputs.delta)
+            previous = current
+        if previous is not None:
+            _score_image(out, previous, pairs, diameter, inputs.delta)
     return out
+
+
+@dataclass(frozen=True)
+class _Pairs:
+    """The poses of the pairs: estimate ``e_idx[p]`` with GT ``g_idx[p]``."""
+
+    est: PoseEstimates
+    gt: GtTable
+    e_idx: I64
+    g_idx: I64
+
+
+@dataclass(frozen=True)
+class _ImageRenders:
+    """One image's rendered pairs and its depth box, being decoded (None: nothing rendered)."""
+
+    group: I64
+    K: F64
+    est_win: list[WindowDepth]
+    gt_win: dict[int, WindowDepth]
+    span: tuple[int, int, int, int] | None
+    depth: Future[NDArray[np.float32]] | None
+    depth_scale: float
+
+
+def _render_image(
+    group: I64,
+    pairs: _Pairs,
+    inputs: VsdInputs,
+    render: WindowRenderer,
+    decoder: ThreadPoolExecutor,
+) -> _ImageRenders:
+    """Render the pairs ``group`` (all in one image) and start decoding its depth box."""
+    dataset, est, gt = inputs.dataset, pairs.est, pairs.gt
+    first = int(pairs.g_idx[group[0]])
+    scene_id, im_id = int(gt.scene_id[first]), int(gt.im_id[first])
+    scene = dataset.scene(scene_id)
+    cam = scene.camera[im_id]
+    if cam.depth_scale is None:
+        raise DatasetError(
+            "depth_scale is missing (needed for VSD)",
+            path=scene.scene_dir / "scene_camera.json",
+            field=f"{im_id}/depth_scale",
+        )
+    depth_path = scene.depth_path(im_id)
+    w, h = image_size(depth_path)
+    gt_win: dict[int, WindowDepth] = {}
+    est_win: list[WindowDepth] = []
+    for p in group.tolist():  # one render per pose: the renderer's unit of work
+        g, e = int(pairs.g_idx[p]), int(pairs.e_idx[p])
+        model = dataset.model(int(gt.obj_id[g]))
+        if g not in gt_win:
+            gt_win[g] = render(model, gt.R[g], gt.t[g], cam.K, w, h)
+        est_win.append(render(model, est.R[e], est.t[e], cam.K, w, h))
+    span = _span([*gt_win.values(), *est_win])
+    depth = None
+    if span is not None:
+        depth = decoder.submit(load_depth_window, depth_path, span[:2], span[2:])
+    return _ImageRenders(group, cam.K, est_win, gt_win, span, depth, cam.depth_scale)
+
+
+def _score_image(
+    out: F64, image: _ImageRenders, pairs: _Pairs, diameter: F64, delta: float
+) -> None:
+    """VSD of one image's rendered pairs into their columns of ``out``."""
+    if image.span is None or image.depth is None:  # no model pixel: every error stays 1
+        return
+    r0, _, c0, _ = image.span
+    depth = image.depth.result() * image.depth_scale
+    taus = np.asarray(VSD_TAUS)
+    for p, e_w in zip(image.group.tolist(), image.est_win, strict=True):
+        g_w = image.gt_win[int(pairs.g_idx[p])]
+        box = _span([e_w, g_w])
+        if box is None:
+            continue
+        test = depth[box[0] - r0 : box[1] - r0, box[2] - c0 : box[3] - c0]
+        out[:, p] = vsd_in_window(test, _pasted(e_w, box), _pasted(g_w, box), image.K,
+                                  (box[0], box[2]), delta, taus,
+                                  diameter=float(diameter[p]))  # fmt: skip

@@ -22,7 +22,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -39,9 +39,11 @@ from bopsurg.evaluation.matching import greedy_match
 from bopsurg.evaluation.pair_errors import ModelCache, candidate_pairs, pair_errors
 from bopsurg.evaluation.summary import paper_summary
 from bopsurg.evaluation.tables import GtTable, estimates_frame, load_gt_table, rank_within_groups
-from bopsurg.executors import Executor
 from bopsurg.metrics.registry import METRICS
 from bopsurg.plugins import DepthRenderer, load_plugin
+
+if TYPE_CHECKING:  # only a type here: the default (local) run loads no multiprocessing
+    from bopsurg.executors import Executor
 
 log = logging.getLogger(__name__)
 

@@ -127,6 +127,58 @@ def vsd(
         >>> vsd(d, d, d, K, 15.0, [0.05, 0.5], diameter=100.0).tolist()
         [0.0, 0.0]
     """
+    test, est, gt, K_m, tau, diam = _checked(depth_test, depth_est, depth_gt, K, delta, taus,
+                                             diameter, cost)  # fmt: skip
+    return _vsd_window(test, est, gt, K_m, (0, 0), delta, tau, diam, cost, visib_mode)
+
+
+def vsd_in_window(
+    depth_test: ArrayLike,
+    depth_est: ArrayLike,
+    depth_gt: ArrayLike,
+    K: ArrayLike,
+    origin: tuple[int, int],
+    delta: float,
+    taus: Sequence[float] | ArrayLike,
+    diameter: float | None = None,
+    cost: VsdCost = "step",
+    *,
+    visib_mode: VisibMode = "bop19",
+) -> F64:
+    """:func:`vsd` of whole images, given the same window of the three.
+
+    When both rendered depths are 0 outside the window, the errors equal those of
+    :func:`vsd` on the whole images, bit for bit: only pixels where a model is rendered can
+    be visible, and distances do not depend on the window.
+
+    Args:
+        depth_test, depth_est, depth_gt: (h, w) windows of the images, mm.
+        K: (3, 3) camera matrix of the whole image.
+        origin: (row, column) of the window's top-left pixel in the whole image.
+        delta, taus, diameter, cost, visib_mode: As for :func:`vsd`.
+
+    Returns:
+        (T,) float64 errors, one per τ.
+    """
+    test, est, gt, K_m, tau, diam = _checked(depth_test, depth_est, depth_gt, K, delta, taus,
+                                             diameter, cost)  # fmt: skip
+    origin_rc = (int(origin[0]), int(origin[1]))
+    return _vsd_window(test, est, gt, K_m, origin_rc, delta, tau, diam, cost, visib_mode)
+
+
+def _checked(
+    depth_test: ArrayLike,
+    depth_est: ArrayLike,
+    depth_gt: ArrayLike,
+    K: ArrayLike,
+    delta: float,
+    taus: Sequence[float] | ArrayLike,
+    diameter: float | None,
+    cost: str,
+) -> tuple[
+    NDArray[np.floating], NDArray[np.floating], NDArray[np.floating], F64, F64, float | None
+]:
+    """The inputs of :func:`vsd` checked and converted (see its Raises)."""
     test = _depth(depth_test, "depth_test", None)
     est = _depth(depth_est, "depth_est", test.shape)
     gt = _depth(depth_gt, "depth_gt", test.shape)
@@ -137,11 +189,28 @@ def vsd(
         raise InputError(f"must be finite, got {delta!r}", field="delta")
     tau = _taus(taus, cost)
     diam = None if diameter is None else _positive(diameter, "diameter")
+    return test, est, gt, K_m, tau, diam
 
+
+def _vsd_window(
+    test: NDArray[np.floating],
+    est: NDArray[np.floating],
+    gt: NDArray[np.floating],
+    K_m: F64,
+    origin: tuple[int, int],
+    delta: float,
+    tau: F64,
+    diam: float | None,
+    cost: str,
+    visib_mode: VisibMode,
+) -> F64:
+    """VSD of checked images that are the window at ``origin`` of the whole images."""
     window = _support_window(est, gt)
     if window is None:
         return np.ones(tau.size)
-    dist_test, dist_est, dist_gt = (depth_to_distance(d[window], K_m, _window_origin(window))
+    r0, c0 = _window_origin(window)
+    at = (origin[0] + r0, origin[1] + c0)
+    dist_test, dist_est, dist_gt = (depth_to_distance(d[window], K_m, at)
                                     for d in (test, est, gt))  # fmt: skip
     visib_gt = estimate_visib_mask_gt(dist_test, dist_gt, delta, visib_mode)
     visib_est = estimate_visib_mask_est(dist_test, dist_est, visib_gt, delta, visib_mode)
@@ -156,7 +225,8 @@ def vsd(
     if cost == "step":
         # #{d ≥ τ} for all τ at once: d sorted, then one binary search per τ.
         n_ge = dists.size - np.searchsorted(np.sort(dists), tau, side="left")
-        return (n_ge + comp_count) / float(union_count)
+        result: F64 = (n_ge + comp_count) / float(union_count)
+        return result
     out = np.empty(tau.size)
     for k, t in enumerate(tau):  # T sums over the pixels, in the reference's order
         out[k] = (np.sum(np.minimum(dists / t, 1.0)) + comp_count) / float(union_count)

@@ -16,7 +16,11 @@ trimesh = pytest.importorskip("trimesh")
 pytest.importorskip("rtree")  # trimesh ray casting
 
 from bopsurg.bop.meshes import ObjectModel  # noqa: E402
-from bopsurg.generators.depth_renderer import PyBulletDepthRenderer, model_key  # noqa: E402
+from bopsurg.generators.depth_renderer import (  # noqa: E402
+    PyBulletDepthRenderer,
+    model_key,
+    quaternion_xyzw,
+)
 from bopsurg.needle import needle_mesh  # noqa: E402
 from bopsurg.plugins import DepthRenderer, load_plugin  # noqa: E402
 
@@ -254,6 +258,30 @@ def test_edge_cases(renderer, needle):
     cloud = ObjectModel(pts=needle.pts, faces=np.zeros((0, 3), int))
     with pytest.raises(ValueError, match="point cloud"):
         renderer.render_depth(cloud, R, np.array([0.0, 0.0, 50.0]), K_SIM, W, H)
+
+
+def test_window_render_is_the_whole_render_cut(renderer, needle):
+    R = Rotation.from_euler("xyz", [0.3, -0.4, 1.1]).as_matrix()
+    t = np.array([4.0, -3.0, 70.0])
+    whole = renderer.render_depth(needle, R, t, K_ODD, W, H)
+    depth, (r0, c0) = renderer.render_depth_window(needle, R, t, K_ODD, W, H)
+    assert depth.shape[0] * depth.shape[1] < W * H / 10
+    pasted = np.zeros((H, W))
+    pasted[r0 : r0 + depth.shape[0], c0 : c0 + depth.shape[1]] = depth
+    np.testing.assert_array_equal(pasted, whole)
+    assert renderer.render_depth_window(needle, R, np.array([0.0, 0.0, -50.0]), K_SIM, W, H) is None
+
+
+def test_quaternions_are_scipys_bit_for_bit():
+    """The poses pybullet gets are those it got through scipy (the renders do not change)."""
+    Rs = Rotation.random(3000, random_state=4).as_matrix()
+    axes = [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])]
+    noisy = Rs[:5] + 1e-9 * np.random.default_rng(1).standard_normal((5, 3, 3))  # scipy's SVD
+    for R in [*Rs, *axes, *noisy]:
+        want = Rotation.from_matrix(R).as_quat()
+        np.testing.assert_array_equal(np.array(quaternion_xyzw(R)), want)
+    with pytest.raises(ValueError, match="determinant"):
+        quaternion_xyzw(np.diag([1.0, 1.0, -1.0]))
 
 
 @pytest.mark.slow

@@ -7,9 +7,10 @@ import pandas as pd
 import pytest
 
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.bop.images import save_mask
 from bopsurg.bop.results import load_results
 from bopsurg.evaluation.ambiguity import (
-    _on_mask,
+    _ends_on_mask,
     ambiguity_splits,
     model_keypoints,
     model_plane_normal,
@@ -44,13 +45,35 @@ def test_needle_plane_and_keypoints_without_models_info_extras():
     np.testing.assert_array_equal(given[0], [1, 2, 3])
 
 
-def test_keypoint_on_mask_tolerates_one_pixel():
+def _on_full_mask(mask: np.ndarray, uv: np.ndarray) -> bool:
+    """The definition on the whole mask: any pixel of the 3x3 neighbourhood of rint(uv)."""
+    if not np.all(np.isfinite(uv)):
+        return False
+    u, v = int(np.rint(uv[0])), int(np.rint(uv[1]))
+    h, w = mask.shape
+    r0, r1, c0, c1 = max(v - 1, 0), min(v + 2, h), max(u - 1, 0), min(u + 2, w)
+    return r0 < r1 and c0 < c1 and bool(mask[r0:r1, c0:c1].any())
+
+
+def test_keypoint_on_mask_tolerates_one_pixel(tmp_path):
     mask = np.zeros((10, 10), bool)
     mask[5, 5] = True
-    assert _on_mask(mask, np.array([6.4, 4.0]))
-    assert not _on_mask(mask, np.array([8.0, 8.0]))
-    assert not _on_mask(mask, np.array([np.nan, 1.0]))
-    assert not _on_mask(mask, np.array([-5.0, 5.0]))
+    path = tmp_path / "m.png"
+    save_mask(path, mask)
+    assert _ends_on_mask(path, np.array([[6.4, 4.0], [8.0, 8.0]])) == (True, False)
+    assert _ends_on_mask(path, np.array([[np.nan, 1.0], [-5.0, 5.0]])) == (False, False)
+    assert _ends_on_mask(path, np.array([[1e30, 5.0], [5.0, 6.0]])) == (False, True)
+
+
+def test_ends_on_mask_equal_the_full_mask_definition(tmp_path):
+    rng = np.random.default_rng(7)
+    mask = rng.random((37, 53)) < 0.05
+    path = tmp_path / "m.png"
+    save_mask(path, mask)
+    for _ in range(300):
+        uv = rng.uniform([-4.0, -4.0], [57.0, 41.0], size=(2, 2))
+        want = (_on_full_mask(mask, uv[0]), _on_full_mask(mask, uv[1]))
+        assert _ends_on_mask(path, uv) == want, uv
 
 
 def test_splits_count_each_group():

@@ -125,3 +125,61 @@ def test_greedy_match_equals_sequential(pairs, threshold):
     expected = {mm["gt_id"]: mm["est_id"] for mm in ref.match_poses(errs, threshold, valid)}
     got = {g: keys[p][0] for g, p in enumerate(m) if p >= 0}
     assert got == expected
+
+
+class _WholeImageRenderer:
+    """A renderer with ``render_depth`` only (the plugin protocol's minimum)."""
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def render_depth(self, model, R, t, K, width, height):
+        return self.inner.render_depth(model, R, t, K, width, height)
+
+
+def test_vsd_errors_equal_whole_image_vsd_of_every_pair(tmp_path):
+    """Windows (rendered and decoded) change nothing: the errors of every kept pair are those
+    of metrics.vsd on the whole depth images, bit for bit, with a windowed renderer and with
+    one that renders whole images only."""
+    pytest.importorskip("pybullet")
+    from bopsurg.bop.images import load_depth, save_depth
+    from bopsurg.bop.results import load_results
+    from bopsurg.evaluation.pair_errors import ModelCache
+    from bopsurg.evaluation.tables import load_gt_table
+    from bopsurg.example import ExampleSpec, write_example_dataset
+    from bopsurg.generators.depth_renderer import PyBulletDepthRenderer
+
+    ex = write_example_dataset(tmp_path, ExampleSpec(seed=5, scenes=1, images_per_scene=6))
+    ds = BopDataset(ex.root, ex.split)
+    renderer = PyBulletDepthRenderer()
+    w, h = ds.image_size()
+    rng = np.random.default_rng(0)
+    for im_id, cam in ds.scene(1).camera.items():  # the needle on a plane, a bar occluding
+        scene_depth = np.full((h, w), 1000.0)
+        scene_depth[:, w // 2 : w // 2 + 40] = 60.0
+        scene_depth[rng.random((h, w)) < 0.05] = 0.0  # missing measurements
+        for g in ds.scene(1).gt.get(im_id, []):
+            d = renderer.render_depth(ds.model(g.obj_id), g.R, g.t, cam.K, w, h)
+            scene_depth = np.where(d > 0, np.minimum(scene_depth, d + 2.0), scene_depth)
+        save_depth(ds.scene(1).depth_path(im_id), scene_depth / cam.depth_scale)
+    est = load_results(ex.results)
+    gt = load_gt_table(ds)
+    pairs = bop19.kept_pairs(est, gt, bop19._target_frame(ds.targets()))
+    e_idx, g_idx = pairs.est_index, pairs.gt_index
+    diam = ModelCache(ds, 0.01).diameters(gt.obj_id[g_idx])
+    got = [
+        bop19.vsd_errors(est, gt, e_idx, g_idx, diam, bop19.VsdInputs(ds, r))
+        for r in (renderer, _WholeImageRenderer(renderer))
+    ]
+    want = np.ones((10, e_idx.size))
+    for p, (e, g) in enumerate(zip(e_idx, g_idx, strict=True)):
+        cam = ds.scene(int(gt.scene_id[g])).camera[int(gt.im_id[g])]
+        test = load_depth(ds.scene(1).depth_path(int(gt.im_id[g]))) * cam.depth_scale
+        model = ds.model(int(gt.obj_id[g]))
+        d_est = renderer.render_depth(model, est.R[e], est.t[e], cam.K, w, h)
+        d_gt = renderer.render_depth(model, gt.R[g], gt.t[g], cam.K, w, h)
+        want[:, p] = metrics.vsd(test, d_est, d_gt, cam.K, 15.0, bop19.VSD_TAUS, float(diam[p]))
+    assert e_idx.size >= 3
+    assert np.any((want > 0) & (want < 1))  # partial errors: the windows are exercised
+    np.testing.assert_array_equal(got[0], want)
+    np.testing.assert_array_equal(got[1], want)

@@ -16,6 +16,7 @@ from bopsurg.metrics import (
     vsd,
 )
 from bopsurg.metrics.reference import vsd_ref
+from bopsurg.metrics.vsd import vsd_in_window
 
 from ._data import HYP
 
@@ -111,6 +112,27 @@ def test_small_object_window_equals_reference(seed: int) -> None:
     got = vsd(test, est, gt, K, 15.0, BOP19_TAUS, 60.0)
     exp = vsd_ref(test, est, gt, K, 15.0, BOP19_TAUS, True, 60.0)
     np.testing.assert_allclose(got, exp, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_window_of_the_images_gives_the_whole_images_errors(seed: int) -> None:
+    """vsd_in_window on any window holding both renderings: vsd's errors, bit for bit."""
+    rng = np.random.default_rng(seed)
+    h, w = 60, 80
+    K = np.array([[300.0, 0.0, 39.5], [0.0, 310.0, 29.0], [0.0, 0.0, 1.0]])
+    test = (rng.uniform(200, 400, (h, w)) * (rng.random((h, w)) > 0.1)).astype(np.float32)
+    gt, est = np.zeros((h, w)), np.zeros((h, w))
+    gt[41:50, 7:19] = rng.uniform(250, 350, (9, 12)) * (rng.random((9, 12)) > 0.3)
+    est[44:53, 12:25] = rng.uniform(250, 350, (9, 13)) * (rng.random((9, 13)) > 0.3)
+    want = vsd(test, est, gt, K, 15.0, BOP19_TAUS, 60.0)
+    for r0, r1, c0, c1 in [(41, 53, 7, 25), (30, 60, 0, 40), (0, h, 0, w)]:
+        win = (slice(r0, r1), slice(c0, c1))
+        got = vsd_in_window(test[win], est[win], gt[win], K, (r0, c0), 15.0, BOP19_TAUS, 60.0)
+        np.testing.assert_array_equal(got, want)
+    empty = np.zeros((3, 4))
+    np.testing.assert_array_equal(
+        vsd_in_window(test[:3, :4], empty, empty, K, (0, 0), 15.0, BOP19_TAUS), np.ones(10)
+    )
 
 
 def test_float32_difference_like_the_reference() -> None:
