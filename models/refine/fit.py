@@ -42,7 +42,7 @@ from torch import Tensor
 
 from bopsurg.models.predict_config import DepthSettings, FitSettings
 from bopsurg.models.refine.arc import ArcModel, exp_so3, log_so3, mirror_pose, same_ends, skew
-from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt
+from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
 from bopsurg.models.refine.wire3d import stack_points, wire_residuals
 
 F64 = NDArray[np.float64]
@@ -397,7 +397,9 @@ class _Problem:
         return top_row * (1 - fy) + (g[..., 2] * (1 - fx) + g[..., 3] * fx) * fy
 
     def evaluate(self, R: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Robust image cost (B,), residuals (B, N+3M(+P)), IRLS weights and J (B, ..., 6)."""
+        """Robust cost (B,), the normal equations of its IRLS-weighted residuals (JᵀWJ
+        (B, 6, 6), JᵀWr (B, 6); :func:`.lm.normal_equations`) and the image residuals
+        (B, N+3M): reverse (px), forward (px), the tube's sides (signed px)."""
         s, rows = self.s, self.rows
         X, rx, uv = self.project(R, t)
         rho, drho = self.wire_px(X, rx)
@@ -420,19 +422,23 @@ class _Problem:
         J_side = torch.einsum("kbm,bmkp->bmp", side[1:], torch.cat([Jp + dn, Jp - dn], 1))
         w_side = s.outline_weight * torch.where(use2, w_s, 0.0) / (2 * m)
         w_rev = w_r * rows.valid / rows.real[:, None]
-        r = [near.d_rev, d_fwd, d_side]
-        w = [w_rev, s.forward_weight * w_f / m, w_side]
-        J = [J_rev, J_fwd, J_side]
+        terms = [
+            (near.d_rev, w_rev, J_rev),
+            (d_fwd, s.forward_weight * w_f / m, J_fwd),
+            (d_side, w_side, J_side),
+        ]
         if self.points is not None:
             P, ok, count = self.points
             r_d, J_d = wire_residuals(R, t, P, self.arc)
             r_d = r_d * ok
             rho_d, w_d = cauchy(r_d, self.depth.scale_mm)
             cost = cost + self.depth.weight * (rho_d * ok).sum(-1) / count
-            r.append(r_d)
-            w.append(self.depth.weight * w_d * ok / count[:, None])
-            J.append(J_d)
-        return cost, torch.cat(r, 1), torch.cat(w, 1), torch.cat(J, 1)
+            terms.append((r_d, self.depth.weight * w_d * ok / count[:, None], J_d))
+        H, g = normal_equations(*terms[0])
+        for term in terms[1:]:
+            H_k, g_k = normal_equations(*term)
+            H, g = H + H_k, g + g_k
+        return cost, H, g, torch.cat([near.d_rev, d_fwd, d_side], 1)
 
 
 def _gradient(uv: Tensor) -> Tensor:
@@ -589,9 +595,9 @@ def _fit_batch(
     sq = torch.as_tensor(np.sqrt(s.prior_weight) / sigma, device=device)
     prior_H = torch.diag(sq**2)
 
-    def total(x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        c, r, w, J = prob.evaluate(exp_so3(x[:, :3]) @ R_s, t_s + x[:, 3:])
-        return c + 0.5 * ((sq * (x - x_prior)) ** 2).sum(-1), r, w, J
+    def total(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        c, H, g, _ = prob.evaluate(exp_so3(x[:, :3]) @ R_s, t_s + x[:, 3:])
+        return c + 0.5 * ((sq * (x - x_prior)) ** 2).sum(-1), H, g
 
     def prior(x: Tensor) -> tuple[Tensor, Tensor]:
         return prior_H, sq**2 * (x - x_prior)

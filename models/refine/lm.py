@@ -3,13 +3,15 @@
 Both needle fits use it: the image (and RGB-D) fit of :mod:`.fit`, whose state is a pose
 increment per start with a Gaussian prior on it, and the depth-only fit of :mod:`.depth_fit`,
 whose state is the poses themselves. A batch row is one start of one problem (one needle);
-``group`` names each row's problem. The objective gives, per row, the robust cost, the
-residuals, their IRLS weights and the Jacobian of the residuals with respect to a step
-(ω, δt) (rad, mm) (rows of different problems are padded to one residual count with zero
-weights); ``apply`` moves the state by a step. Every row takes a damped Gauss-Newton step at
-once (one batched solve); a step that does not lower its row's cost is rejected and that row's
-damping raised. A problem stops (its rows stop changing) once all its starts have converged
-at the same step; the batch stops when every problem has.
+``group`` names each row's problem. The objective gives, per row, the robust cost and the
+Gauss-Newton normal equations of its data: the Hessian JᵀWJ and gradient JᵀWr of the IRLS
+weighted residuals with respect to a step (ω, δt) (rad, mm) (:func:`normal_equations`,
+summed per term by the caller, so that the residuals, padded to one count per batch with
+zero weights, are never concatenated or copied between steps); ``apply`` moves the state by
+a step. Every row takes a damped Gauss-Newton step at once (one batched solve); a step that
+does not lower its row's cost is rejected and that row's damping raised. A problem stops (its
+rows stop changing) once all its starts have converged at the same step; the batch stops
+when every problem has.
 """
 
 from __future__ import annotations
@@ -23,8 +25,15 @@ from torch import Tensor
 
 State = TypeVar("State", Tensor, tuple[Tensor, ...])
 
-#: (cost (B,), residuals (B, M), IRLS weights (B, M), Jacobian (B, M, 6)) of a state.
-Evaluation = tuple[Tensor, Tensor, Tensor, Tensor]
+#: (cost (B,), Hessian JᵀWJ (B, 6, 6), gradient JᵀWr (B, 6)) of a state.
+Evaluation = tuple[Tensor, Tensor, Tensor]
+
+
+def normal_equations(r: Tensor, w: Tensor, J: Tensor) -> tuple[Tensor, Tensor]:  # noqa: N803
+    """JᵀWJ (B, 6, 6) and JᵀWr (B, 6) of residuals ``r`` (B, M), IRLS weights ``w`` (B, M)
+    and Jacobian ``J`` (B, M, 6)."""
+    JtW = J.transpose(1, 2) * w[:, None, :]
+    return JtW @ J, (JtW @ r[..., None])[..., 0]
 
 
 def levenberg_marquardt(
@@ -63,25 +72,22 @@ def levenberg_marquardt(
         group = torch.zeros(len(rows), dtype=torch.int64, device=rows.device)
     frozen = torch.zeros(len(rows), dtype=torch.bool, device=rows.device)
     eye = torch.eye(6, dtype=rows.dtype, device=rows.device)
-    cost, r, w, J = objective(state)
+    cost, H_data, g_data = objective(state)
     for _ in range(iterations):
-        JtW = J.transpose(1, 2) * w[:, None, :]
-        H = JtW @ J
-        grad = (JtW @ r[..., None])[..., 0]
+        H, grad = H_data, g_data
         if prior is not None:
             prior_H, prior_grad = prior(state)
             H, grad = H + prior_H, grad + prior_grad
         diag = H.diagonal(dim1=-2, dim2=-1)
         A = H + (lam[:, None] * (diag + floor))[..., None] * eye
         moved = apply(state, -torch.linalg.solve(A, grad[..., None])[..., 0])
-        c_new, r_new, w_new, J_new = objective(moved)
+        c_new, H_new, g_new = objective(moved)
         better = torch.isfinite(c_new) & (c_new < cost) & ~frozen
         cost_before = cost
         state = _where(better, moved, state)
         cost = torch.where(better, c_new, cost)
-        r = torch.where(better[:, None], r_new, r)
-        w = torch.where(better[:, None], w_new, w)
-        J = torch.where(better[:, None, None], J_new, J)
+        H_data = torch.where(better[:, None, None], H_new, H_data)
+        g_data = torch.where(better[:, None], g_new, g_data)
         lam_before = lam
         lam = torch.where(frozen, lam, torch.where(better, lam * 0.3, lam * 10.0))
         if rtol is None:

@@ -62,12 +62,17 @@ def nearest_arc_points(q: Tensor, arc: ArcModel) -> Tensor:
     the circle's point at the same angle, or the nearer end where that angle lies off the
     arc."""
     a = torch.remainder(torch.atan2(q[..., 1], q[..., 0]), 2 * np.pi)
-    past_tip = a - arc.arc_rad
-    before_tail = 2 * np.pi - a
-    end = torch.where(past_tip < before_tail, arc.arc_rad, 0.0)
-    theta = torch.where(a <= arc.arc_rad, a, end.to(a.dtype))
-    out: Tensor = arc.radius * torch.stack(
-        [torch.cos(theta), torch.sin(theta), torch.zeros_like(theta)], -1
+    # the circle's point at angle a is the radius along q's direction in the plane (no
+    # trigonometry per point: this runs on every depth point at every step)
+    xy = q[..., :2]
+    r_xy = torch.linalg.vector_norm(xy, dim=-1, keepdim=True)
+    tail = torch.tensor([1.0, 0.0], dtype=q.dtype, device=q.device)
+    on_circle = torch.where(r_xy > 0, xy / r_xy.clamp(min=1e-300), tail)
+    tip = torch.tensor([np.cos(arc.arc_rad), np.sin(arc.arc_rad)], dtype=q.dtype, device=q.device)
+    end = torch.where((a - arc.arc_rad < 2 * np.pi - a)[..., None], tip, tail)
+    out: Tensor = torch.cat(
+        [arc.radius * torch.where((a <= arc.arc_rad)[..., None], on_circle, end), 0.0 * q[..., 2:]],
+        -1,
     )
     return out
 
@@ -99,7 +104,10 @@ def wire_residuals(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> tuple[Tens
     arc parameter is stationary, so its own change does not enter)."""
     diff, c = _offsets(R, t, P, arc)
     dist = torch.linalg.vector_norm(diff, dim=-1)
-    Rt = R.transpose(1, 2)
-    u = (diff / dist.clamp(min=1e-9)[..., None]) @ Rt
-    a = c @ Rt
-    return dist - arc.wire_radius, torch.cat([torch.linalg.cross(u, a), -u], dim=-1)
+    n = diff / dist.clamp(min=1e-9)[..., None]  # u in the model frame: u = R n
+    # u × (R c) = R (n × c), with c_z = 0; both halves of J rotate by R in one product
+    nx, ny, nz = n.unbind(-1)
+    n_c = torch.stack([-nz * c[..., 1], nz * c[..., 0], nx * c[..., 1] - ny * c[..., 0]], -1)
+    b, m = P.shape[:2]
+    J = (torch.stack([n_c, -n], -2).reshape(b, 2 * m, 3) @ R.transpose(1, 2)).reshape(b, m, 6)
+    return dist - arc.wire_radius, J

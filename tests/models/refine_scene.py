@@ -12,10 +12,10 @@ import dataclasses
 from typing import NamedTuple
 
 import numpy as np
-import torch
+from scipy.spatial.transform import Rotation
 
 from bopsurg.models.predict_config import DepthSettings, FitSettings
-from bopsurg.models.refine.arc import ArcModel, exp_so3
+from bopsurg.models.refine.arc import ArcModel
 from bopsurg.needle import needle_mesh
 from bopsurg.silhouette import project_silhouette
 
@@ -26,7 +26,8 @@ ARC = ArcModel.from_keypoints(MODEL.pts[0], MODEL.pts[-1])
 
 def rot(w: np.ndarray) -> np.ndarray:
     """(..., 3) rotation vectors → (..., 3, 3) rotations, numpy."""
-    return exp_so3(torch.as_tensor(np.asarray(w, np.float64))).numpy()
+    w = np.asarray(w, np.float64)
+    return Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(*w.shape, 3)
 
 
 def pose(view_deg: float, spin_deg: float, t: tuple[float, float, float]):

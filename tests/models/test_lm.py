@@ -10,7 +10,11 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt  # noqa: E402
+from bopsurg.models.refine.lm import (  # noqa: E402
+    fit_threads,
+    levenberg_marquardt,
+    normal_equations,
+)
 
 A = torch.as_tensor(np.random.default_rng(0).normal(size=(20, 6)))
 B = torch.as_tensor(np.random.default_rng(1).normal(size=20))
@@ -22,7 +26,9 @@ def _linear(A, b):
 
     def objective(x):
         r = x @ A.T - b
-        return 0.5 * (r**2).sum(1), r, torch.ones_like(r), A.expand(len(x), *A.shape)
+        return 0.5 * (r**2).sum(1), *normal_equations(
+            r, torch.ones_like(r), A.expand(len(x), *A.shape)
+        )
 
     return objective
 
@@ -55,10 +61,10 @@ def test_a_start_whose_steps_all_fail_is_kept():
     base = _linear(A, B)
 
     def objective(x):
-        c, r, w, J = base(x)
+        c, H, g = base(x)
         moved = ~(x == 0).all(1)
         c = torch.where((torch.arange(len(x)) == 1) & moved, torch.nan, c)
-        return c, r, w, J  # start 1: every moved state costs NaN
+        return c, H, g  # start 1: every moved state costs NaN
 
     x, cost = levenberg_marquardt(
         objective, torch.zeros(2, 6, dtype=torch.float64), torch.add, 10, 1e-3
@@ -73,8 +79,8 @@ def test_the_prior_pulls_to_its_centre():
     strong = torch.full((6,), 1e3, dtype=torch.float64)
 
     def objective(x):
-        c, r, w, J = _linear(A, B)(x)
-        return c + 0.5 * ((strong * (x - centre)) ** 2).sum(1), r, w, J
+        c, H, g = _linear(A, B)(x)
+        return c + 0.5 * ((strong * (x - centre)) ** 2).sum(1), H, g
 
     def prior(x):
         return torch.diag(strong**2), strong**2 * (x - centre)
@@ -110,7 +116,9 @@ def test_each_problem_of_a_batch_stops_as_if_it_ran_alone():
     def objective(x):
         b = torch.where((group == 0)[:, None], B, B2)
         r = x @ A.T - b
-        return 0.5 * (r**2).sum(1), r, torch.ones_like(r), A.expand(len(x), *A.shape)
+        return 0.5 * (r**2).sum(1), *normal_equations(
+            r, torch.ones_like(r), A.expand(len(x), *A.shape)
+        )
 
     # a loose tolerance stops them short of the minimum, where the step count shows
     x, cost = levenberg_marquardt(objective, x0, torch.add, 30, 10.0, rtol=1e-2, group=group)

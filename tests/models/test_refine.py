@@ -162,7 +162,7 @@ def test_the_tube_matches_the_rendered_wire_width():
     settings = GENERIC
     batch = EvidenceBatch.stack([ev], torch.device("cpu"))
     prob = _Problem(ARC, batch, torch.as_tensor(K)[None], settings, torch.tensor([0]))
-    _, r, _, _ = prob.evaluate(torch.as_tensor(R)[None], torch.as_tensor(t)[None])
+    *_, r = prob.evaluate(torch.as_tensor(R)[None], torch.as_tensor(t)[None])
     r = r.numpy()
     sides = r[0, ev.size + settings.samples :]
     assert abs(np.median(sides)) < 0.35
