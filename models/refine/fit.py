@@ -603,9 +603,10 @@ def _fit_batch(
         return prior_H, sq**2 * (x - x_prior)
 
     x0 = torch.zeros(len(roi), 6, dtype=torch.float64, device=device)
-    start_cost = total(x0)[0][slot == 0]  # the network's pose: its first start, x_prior 0
+    first = total(x0)
+    start_cost = first[0][slot == 0]  # the network's pose: its first start, x_prior 0
     x, cost = levenberg_marquardt(
-        total, x0, torch.add, s.iterations, s.lambda0, prior=prior, group=roi
+        total, x0, torch.add, s.iterations, s.lambda0, prior=prior, group=roi, first=first
     )
     best, ok = _best_rows(cost, roi, slot, n)
     R_best = exp_so3(x[best, :3]) @ R_s[best]

@@ -47,6 +47,7 @@ def levenberg_marquardt(
     floor: float = 0.0,
     rtol: float | None = 1e-6,
     group: Tensor | None = None,
+    first: Evaluation | None = None,
 ) -> tuple[State, Tensor]:
     """Minimise ``objective`` from ``state`` (B rows); returns (state, cost (B,)).
 
@@ -65,6 +66,7 @@ def levenberg_marquardt(
             less than this share, or its damping reached 1 after a rejected one; None: run
             every iteration.
         group: (B,) int64 problem index of each row (default: one problem).
+        first: The objective at ``state``, where the caller has it already.
     """
     rows = _rows(state)[0]
     lam = torch.full((len(rows),), lambda0, dtype=rows.dtype, device=rows.device)
@@ -72,7 +74,7 @@ def levenberg_marquardt(
         group = torch.zeros(len(rows), dtype=torch.int64, device=rows.device)
     frozen = torch.zeros(len(rows), dtype=torch.bool, device=rows.device)
     eye = torch.eye(6, dtype=rows.dtype, device=rows.device)
-    cost, H_data, g_data = objective(state)
+    cost, H_data, g_data = first if first is not None else objective(state)
     for _ in range(iterations):
         H, grad = H_data, g_data
         if prior is not None:
