@@ -529,15 +529,16 @@ def refine_poses(
     """
     s = settings or FitSettings()
     n = len(evidence)
-    R_init, t_init = np.asarray(R_init, float).reshape(n, 3, 3), np.asarray(t_init, float)
+    R_init = np.asarray(R_init, float).reshape(n, 3, 3)
+    t_init = np.asarray(t_init, float).reshape(n, 3)
     K = np.broadcast_to(np.asarray(K, float), (n, 3, 3))
     pts = list(points) if points is not None else [None] * n
     has_points = np.array([p is not None for p in pts], bool)
-    finite = np.isfinite(R_init).all(axis=(1, 2)) & np.isfinite(t_init.reshape(n, 3)).all(1)
+    finite = np.isfinite(R_init).all(axis=(1, 2)) & np.isfinite(t_init).all(1)
     active = finite & np.array([e.size >= s.min_evidence for e in evidence], bool)
     out = FitResults(
         R_init.copy(),
-        t_init.reshape(n, 3).copy(),
+        t_init.copy(),
         np.full(n, np.inf),
         np.full(n, np.inf),
         np.zeros(n, bool),
