@@ -148,10 +148,11 @@ class EvidenceBatch(NamedTuple):
         """The ROIs' evidence on ``device``."""
         points, valid = stack_points([e.points for e in evidence], device)
         side = max([1, *(e.dist.shape[-1] for e in evidence)])
-        maps = np.zeros((6, len(evidence), side, side))
+        maps = torch.zeros((6, len(evidence), side, side), dtype=torch.float64)
         for i, e in enumerate(evidence):  # preparation: a copy per ROI, once per fit
             s = e.dist.shape[-1]
-            maps[:, i, :s, :s] = np.concatenate([e.dist[None], e.grad, e.sdf[None], e.sdf_grad])
+            for c, plane in enumerate((e.dist, *e.grad, e.sdf, *e.sdf_grad)):
+                maps[c, i, :s, :s] = torch.from_numpy(np.ascontiguousarray(plane, np.float64))
 
         def f64(a: ArrayLike) -> Tensor:
             return torch.as_tensor(np.asarray(a, np.float64), device=device)
@@ -160,7 +161,7 @@ class EvidenceBatch(NamedTuple):
             points,
             valid,
             valid.sum(-1).to(torch.float64),
-            f64(maps),
+            maps.to(device),
             torch.as_tensor([e.dist.shape[-1] for e in evidence], device=device),
             f64([e.origin for e in evidence]).reshape(-1, 2),
             f64([e.step for e in evidence]),
