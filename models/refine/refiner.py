@@ -393,10 +393,10 @@ def _per_roi(
     depth: np.ndarray | Sequence[np.ndarray | None] | None, n: int
 ) -> list[np.ndarray | None]:
     """The depth image of each of n ROIs (None: RGB) from :meth:`NeedleRefiner.fit`'s
-    ``depth``."""
+    ``depth`` (one (H, W) image for all, or one entry per ROI, e.g. an (n, H, W) stack)."""
     if depth is None:
         return [None] * n
-    if isinstance(depth, np.ndarray):
+    if isinstance(depth, np.ndarray) and depth.ndim == 2:
         return [depth] * n
     if len(depth) != n:
         raise ValueError(f"depth: {len(depth)} entries for {n} ROIs")
