@@ -11,7 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from numpy.typing import NDArray
+from torch import Tensor
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.errors import BopsurgError
@@ -72,24 +74,41 @@ def dataset_arc(dataset: BopDataset, obj_id: int) -> ArcModel:
         ) from err
 
 
-def _skew(v: F64) -> F64:
+def skew(v: Tensor) -> Tensor:
     """(..., 3) → (..., 3, 3) cross-product matrices."""
-    z = np.zeros(v.shape[:-1])
+    z = torch.zeros_like(v[..., 0])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack(
-        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    return torch.stack(
+        [torch.stack([z, -w, y], -1), torch.stack([w, z, -x], -1), torch.stack([-y, x, z], -1)],
+        -2,
     )
 
 
-def _exp_so3(w: F64) -> F64:
+def exp_so3(w: Tensor) -> Tensor:
     """(..., 3) rotation vectors → (..., 3, 3) rotations (Rodrigues)."""
-    theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    Kx = _skew(w)
+    theta = torch.linalg.vector_norm(w, dim=-1)[..., None, None]
+    Kx = skew(w)
     small = theta < 1e-12
-    th = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0, np.sin(th) / th)
-    b = np.where(small, 0.5, (1.0 - np.cos(th)) / th**2)
-    return np.eye(3) + a * Kx + b * (Kx @ Kx)
+    th = torch.where(small, torch.ones_like(theta), theta)
+    a = torch.where(small, torch.ones_like(th), torch.sin(th) / th)
+    b = torch.where(small, torch.full_like(th, 0.5), (1.0 - torch.cos(th)) / th**2)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + a * Kx + b * (Kx @ Kx)
+
+
+def log_so3(R: Tensor) -> Tensor:
+    """(..., 3, 3) rotations → (..., 3) rotation vectors (angles up to π)."""
+    c = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
+    theta = torch.arccos(c)[..., None]
+    v = torch.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        -1,
+    )
+    general = v * theta / (2.0 * torch.sin(theta).clamp(min=1e-300))
+    # near a half turn v vanishes: the axis is the symmetric part's top eigenvector
+    axis = torch.linalg.eigh(0.5 * (R + R.transpose(-1, -2)))[1][..., :, -1]
+    out = torch.where(theta < np.pi - 1e-6, general, np.pi * axis)
+    return torch.where(theta < 1e-9, 0.5 * v, out)
 
 
 def half_turn(arc: ArcModel) -> F64:
@@ -99,34 +118,40 @@ def half_turn(arc: ArcModel) -> F64:
     return 2.0 * np.outer(b, b) - np.eye(3)
 
 
-def same_ends(R: F64, t: F64, R_ref: F64, t_ref: F64, arc: ArcModel) -> F64:
-    """``R`` or its half turn (the same arc, tip and tail swapped; ``t`` stays): the one
-    whose tip lies on the nearer line of sight to the tip of the pose ``(R_ref, t_ref)``.
+def same_ends(R: Tensor, t: Tensor, R_ref: Tensor, t_ref: Tensor, arc: ArcModel) -> Tensor:
+    """Each rotation of ``R`` (..., 3, 3) or its half turn (the same arc, tip and tail
+    swapped; ``t`` (..., 3) mm stays): the one whose tip lies on the nearer line of sight to
+    the tip of the pose ``(R_ref, t_ref)`` (broadcast against ``R``, ``t``).
 
     A fit of the arc's shape alone (to points, or from a tilt-mirrored start) cannot tell the
     ends apart; this keeps the reference's (the pose head's: the end check judges it after)."""
-    tip = arc.points(2)[-1]
+    tip = torch.as_tensor(arc.points(2)[-1], dtype=R.dtype, device=R.device)
+    S = torch.as_tensor(half_turn(arc), dtype=R.dtype, device=R.device)
 
-    def sight(v: F64) -> F64:
-        return v / max(float(np.linalg.norm(v)), 1e-12)
+    def sight(v: Tensor) -> Tensor:
+        out: Tensor = v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp(min=1e-12)
+        return out
 
-    R_h = R @ half_turn(arc)
+    R_h = R @ S
     seen = sight(R_ref @ tip + t_ref)
-    return R_h if sight(R_h @ tip + t) @ seen > sight(R @ tip + t) @ seen else R
+    swap = (sight(R_h @ tip + t) * seen).sum(-1) > (sight(R @ tip + t) * seen).sum(-1)
+    return torch.where(swap[..., None, None], R_h, R)
 
 
-def mirror_pose(R: F64, t: F64) -> F64:
-    """The rotation whose arc plane is ``R``'s mirrored through the line of sight to ``t``.
+def mirror_pose(R: Tensor, t: Tensor) -> Tensor:
+    """The rotations (..., 3, 3) whose arc plane is ``R``'s mirrored through the line of
+    sight to ``t`` (..., 3) mm.
 
     A circle tilted by +θ or −θ about an axis across the line of sight projects to (almost)
     the same ellipse; this is the other branch of that two-fold ambiguity: the plane normal
     n goes to ``2(n·v)v − n`` (v the unit line of sight), by the smallest rotation.
     """
-    v = t / np.linalg.norm(t)
-    n = R[:, 2]
-    n2 = 2.0 * (n @ v) * v - n
-    axis = np.cross(n, n2)
-    s, c = np.linalg.norm(axis), float(np.clip(n @ n2, -1.0, 1.0))
-    if s < 1e-9:  # normal along the line of sight: the mirror is the pose itself
-        return R.copy()
-    return _exp_so3(axis / s * np.arctan2(s, c)) @ R
+    v = t / torch.linalg.vector_norm(t, dim=-1, keepdim=True)
+    n = R[..., :, 2]
+    n2 = 2.0 * (n * v).sum(-1, keepdim=True) * v - n
+    axis = torch.linalg.cross(n, n2)
+    s = torch.linalg.vector_norm(axis, dim=-1, keepdim=True)
+    c = (n * n2).sum(-1, keepdim=True).clamp(-1.0, 1.0)
+    turned = exp_so3(axis / s.clamp(min=1e-300) * torch.atan2(s, c)) @ R
+    # normal along the line of sight: the mirror is the pose itself
+    return torch.where((s < 1e-9)[..., None], R, turned)

@@ -12,9 +12,10 @@ with ``points``), which also weighs the image:
 - residual: a point's distance to the centre line less the wire's radius, mm; a Cauchy loss,
   so that pixels of the mask's rim that read the tissue behind the wire, or a thread, cost
   little;
-- starts: the given pose (the pose head's), its tilt mirror (:func:`.fit.mirror_pose`) and a
+- starts: the given pose (the pose head's), its tilt mirror (:func:`.arc.mirror_pose`) and a
   pose from the points alone (their plane and circle), Gauss-Newton with Levenberg-Marquardt
-  damping in lockstep; the cheapest wins;
+  damping, every start of every needle of a batch at once (batched torch, :mod:`.lm`); the
+  cheapest start of a needle wins;
 - the arc maps onto itself under the half turn about its bisector (tip and tail swapped), so
   the points cannot tell the ends apart: the fit keeps the given pose's (the end check,
   :mod:`.ends`, judges them after the stage);
@@ -27,17 +28,20 @@ Units: mm, px; poses model-to-camera in the estimator's needle frame (:class:`.a
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+import torch
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
+from torch import Tensor
 
 from bopsurg.models.predict_config import PointsFitSettings
-from bopsurg.models.refine.arc import ArcModel, mirror_pose, same_ends
+from bopsurg.models.refine.arc import ArcModel, exp_so3, mirror_pose, same_ends
 from bopsurg.models.refine.fit import cauchy
-from bopsurg.models.refine.lm import levenberg_marquardt
-from bopsurg.models.refine.wire3d import wire_distances, wire_residuals
+from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
+from bopsurg.models.refine.wire3d import stack_points, wire_distances, wire_residuals
 from bopsurg.needle import fit_circle
 
 F64 = NDArray[np.float64]
@@ -87,23 +91,55 @@ def pose_from_points(P: F64, arc: ArcModel) -> tuple[F64, F64] | None:
     return R, t
 
 
+class DepthFits(NamedTuple):
+    """Results of :func:`fit_depths` for n ROIs (numpy, host): the fields of :class:`DepthFit`,
+    stacked."""
+
+    R: F64  # (n, 3, 3)
+    t: F64  # (n, 3) mm
+    inliers: F64  # (n,)
+    points: NDArray[np.int64]  # (n,)
+    used: NDArray[np.bool_]  # (n,)
+
+    def row(self, i: int) -> DepthFit:
+        """ROI ``i``'s result."""
+        return DepthFit(
+            self.R[i], self.t[i], float(self.inliers[i]), int(self.points[i]), bool(self.used[i])
+        )
+
+
 def _lm(
-    R_start: F64, t_start: F64, P: F64, arc: ArcModel, s: PointsFitSettings
-) -> tuple[F64, F64, F64]:
-    """The Cauchy fit of the wire to the points ``P`` from S starts in lockstep
-    (:func:`.lm.levenberg_marquardt`): R (S, 3, 3), t (S, 3) mm, robust cost (S,)."""
+    R_start: Tensor,
+    t_start: Tensor,
+    roi: Tensor,
+    P: tuple[Tensor, Tensor],
+    arc: ArcModel,
+    s: PointsFitSettings,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The Cauchy fit of the wire to each row's ROI's points ``P`` ((n, N, 3) mm, and which
+    are real (n, N)) from B start rows (:func:`.lm.levenberg_marquardt`): R (B, 3, 3),
+    t (B, 3) mm, robust cost (B,)."""
+    points, ok = P[0][roi], P[1][roi]
 
-    def objective(pose: tuple[F64, ...]) -> tuple[F64, F64, F64, F64]:
-        r, J = wire_residuals(pose[0], pose[1], P, arc)
+    def objective(pose: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
+        r, J = wire_residuals(pose[0], pose[1], points, arc)
+        r = r * ok
         rho, w = cauchy(r, s.scale)
-        return rho.sum(axis=1), r, w, J
+        return (rho * ok).sum(-1), *normal_equations(r, w * ok, J)
 
-    def moved(pose: tuple[F64, ...], step: F64) -> tuple[F64, ...]:
-        return Rotation.from_rotvec(step[:, :3]).as_matrix() @ pose[0], pose[1] + step[:, 3:]
+    def moved(pose: tuple[Tensor, ...], step: Tensor) -> tuple[Tensor, ...]:
+        return exp_so3(step[:, :3]) @ pose[0], pose[1] + step[:, 3:]
 
     # no prior: the floor keeps a step for points that leave a direction free (a line)
     (R, t), cost = levenberg_marquardt(
-        objective, (R_start, t_start), moved, s.iterations, s.lambda0, floor=1e-9, rtol=None
+        objective,
+        (R_start, t_start),
+        moved,
+        s.iterations,
+        s.lambda0,
+        floor=1e-9,
+        rtol=None,
+        group=roi,
     )
     return R, t, cost
 
@@ -115,40 +151,108 @@ def _collinear(P: F64) -> bool:
     return bool(spread[1] <= 1e-6 * max(spread[0], 1e-9))
 
 
-def fit_depth(
-    R: F64, t: F64, P: F64, arc: ArcModel, settings: PointsFitSettings | None = None
-) -> DepthFit:
-    """The needle's pose fitted to its wire's 3D points (see the module docstring).
+def fit_depths(
+    R: F64,
+    t: F64,
+    P: Sequence[F64],
+    arc: ArcModel,
+    settings: PointsFitSettings | None = None,
+    device: torch.device | str = "cpu",
+) -> DepthFits:
+    """The poses of n needles fitted to their wires' 3D points, all at once (see the module
+    docstring).
 
     Args:
-        R: (3, 3) the starting rotation (the pose head's), model-to-camera.
-        t: (3,) its translation, mm.
-        P: (N, 3) camera points on the wire's visible surface, mm
+        R: (n, 3, 3) the starting rotations (the pose head's), model-to-camera.
+        t: (n, 3) their translations, mm.
+        P: per needle, (N, 3) camera points on the wire's visible surface, mm
             (:func:`.wire3d.depth_points`).
         arc: The needle's centre line.
         settings: Knobs.
+        device: Where the fit runs (float64).
 
     Returns:
-        The fitted pose, or the input one (``used`` False) when the guard refuses the fit.
+        Per needle the fitted pose, or the input one (``used`` False) where the guard
+        refuses the fit.
     """
     s = settings or PointsFitSettings()
-    R, t = np.asarray(R, float), np.asarray(t, float)
-    P = np.asarray(P, float).reshape(-1, 3)
-    if len(P) > s.max_points:
-        P = P[np.linspace(0, len(P) - 1, s.max_points).round().astype(np.int64)]
-    if len(P) < s.min_points or _collinear(P):
-        return DepthFit(R, t, 0.0, len(P), False)
-    starts_R, starts_t = [R, mirror_pose(R, t)], [t, t]
-    geometric = pose_from_points(P, arc)
-    if geometric is not None:
-        starts_R.append(geometric[0])
-        starts_t.append(geometric[1])
-    R_s, t_s, cost = _lm(np.stack(starts_R), np.stack(starts_t), P, arc, s)
-    best = int(np.argmin(cost))
-    R_b, t_b = R_s[best], t_s[best]
+    R, t = np.asarray(R, float).reshape(-1, 3, 3), np.asarray(t, float).reshape(-1, 3)
+    pts = [_strided(np.asarray(p, float).reshape(-1, 3), s.max_points) for p in P]
+    out = DepthFits(
+        R.copy(),
+        t.copy(),
+        np.zeros(len(R)),
+        np.array([len(p) for p in pts], np.int64),
+        np.zeros(len(R), bool),
+    )
+    idx = [i for i, p in enumerate(pts) if len(p) >= s.min_points and not _collinear(p)]
+    if not idx:
+        return out
+    # preparation, once per needle: the pose from the points' own geometry
+    geometric = [pose_from_points(pts[i], arc) for i in idx]
+    dev = torch.device(device)
+    with fit_threads(dev):
+        R0, t0 = (torch.as_tensor(a[idx], device=dev) for a in (R, t))
+        R_b, t_b, inliers, used = _fit_rows(R0, t0, [pts[i] for i in idx], geometric, arc, s)
+        out.inliers[idx] = inliers.cpu().numpy()
+        out.used[idx] = used.cpu().numpy()
+        out.R[idx] = torch.where(used[:, None, None], R_b, R0).cpu().numpy()
+        out.t[idx] = torch.where(used[:, None], t_b, t0).cpu().numpy()
+    return out
+
+
+def _fit_rows(
+    R0: Tensor,  # noqa: N803 (math names)
+    t0: Tensor,
+    P: list[F64],
+    geometric: list[tuple[F64, F64] | None],
+    arc: ArcModel,
+    s: PointsFitSettings,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`fit_depths` of k needles with points enough, from their poses ``R0`` (k, 3, 3),
+    ``t0`` (k, 3) mm, their mirrors and their ``geometric`` poses: the best fits (R, t), their
+    shares of inliers and whether that is enough (k,)."""
+    dev, k = R0.device, len(R0)
+    geo = [j for j, g in enumerate(geometric) if g is not None]
+    rows = np.concatenate([np.arange(k), np.arange(k), geo]).astype(np.int64)
+    order = torch.as_tensor(np.argsort(rows, kind="stable"), device=dev)
+    geo_R = np.array([geometric[j][0] for j in geo]).reshape(-1, 3, 3)  # type: ignore[index]
+    geo_t = np.array([geometric[j][1] for j in geo]).reshape(-1, 3)  # type: ignore[index]
+    R_s = torch.cat([R0, mirror_pose(R0, t0), torch.as_tensor(geo_R, device=dev)])[order]
+    t_s = torch.cat([t0, t0, torch.as_tensor(geo_t, device=dev)])[order]
+    roi = torch.as_tensor(rows, device=dev)[order]
+    stacked = stack_points(P, dev)
+    R_f, t_f, cost = _lm(R_s, t_s, roi, stacked, arc, s)
+    best = _first_best(cost, roi, k)
     # the points do not tell tip from tail: keep the start's ends
-    R_b = same_ends(R_b, t_b, R, t, arc)
-    inliers = float((np.abs(wire_distances(R_b[None], t_b[None], P, arc)[0]) <= s.inlier_mm).mean())
-    if inliers < s.min_inliers:
-        return DepthFit(R, t, inliers, len(P), False)
-    return DepthFit(R_b, t_b, inliers, len(P), True)
+    R_b = same_ends(R_f[best], t_f[best], R0, t0, arc)
+    t_b = t_f[best]
+    near = wire_distances(R_b, t_b, stacked[0], arc).abs() <= s.inlier_mm
+    inliers = (near & stacked[1]).sum(-1) / stacked[1].sum(-1)
+    return R_b, t_b, inliers, inliers >= s.min_inliers
+
+
+def _strided(P: F64, most: int) -> F64:
+    """At most ``most`` of the points, evenly strided in their order."""
+    if len(P) <= most:
+        return P
+    return P[np.linspace(0, len(P) - 1, most).round().astype(np.int64)]
+
+
+def _first_best(cost: Tensor, roi: Tensor, n: int) -> Tensor:
+    """Each ROI's cheapest row (rows grouped by ROI; the first of equals, a NaN first)."""
+    counts = torch.bincount(roi, minlength=n)
+    first = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(len(roi), device=roi.device) - first[roi]
+    table = torch.full((n, int(counts.max())), torch.inf, dtype=cost.dtype, device=cost.device)
+    table[roi, slot] = torch.where(torch.isnan(cost), -torch.inf, cost)
+    return first + table.argmin(-1)
+
+
+def fit_depth(
+    R: F64, t: F64, P: F64, arc: ArcModel, settings: PointsFitSettings | None = None
+) -> DepthFit:
+    """:func:`fit_depths` of one needle: ``R`` (3, 3), ``t`` (3,) mm, points ``P`` (N, 3) mm."""
+    return fit_depths(
+        np.asarray(R, float)[None], np.asarray(t, float)[None], [P], arc, settings
+    ).row(0)

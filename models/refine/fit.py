@@ -19,26 +19,31 @@ lie on them; robust residuals in image px, in both directions, say so:
   (Geman-McClure) loss makes them cost a constant without pulling the arc towards the
   visible part.
 
-Gauss-Newton with Levenberg-Marquardt damping and analytic Jacobians runs several starts in
-lockstep (vectorised over starts): the network's pose and its mirror image through the line
-of sight (a circle and its tilt-mirrored twin project to the same ellipse). The best start
-wins only if its cost beats the cost of the network's own pose; otherwise the caller keeps
-the network's pose. Units: mm, px; poses model-to-camera, ``x_cam = R x_model + t``.
+Gauss-Newton with Levenberg-Marquardt damping and analytic Jacobians runs several starts of
+every needle of a batch at once (:mod:`.lm`; batched torch on the caller's device): the
+network's pose and its mirror image through the line of sight (a circle and its tilt-mirrored
+twin project to the same ellipse). The best start of a needle wins only if its cost beats the
+cost of the network's own pose; otherwise the caller keeps the network's pose. Each needle's
+evidence is prepared once (numpy, cv2: :class:`Evidence`) and stacked (:class:`EvidenceBatch`);
+everything the fit evaluates per iteration is batched over needles × starts.
+Units: mm, px; poses model-to-camera, ``x_cam = R x_model + t``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
+import torch
+from numpy.typing import ArrayLike, NDArray
+from torch import Tensor
 
 from bopsurg.models.predict_config import DepthSettings, FitSettings
-from bopsurg.models.refine.arc import ArcModel, _exp_so3, _skew, mirror_pose, same_ends
-from bopsurg.models.refine.lm import levenberg_marquardt
-from bopsurg.models.refine.wire3d import wire_residuals
+from bopsurg.models.refine.arc import ArcModel, exp_so3, log_so3, mirror_pose, same_ends
+from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
+from bopsurg.models.refine.wire3d import stack_points, wire_residuals
 
 F64 = NDArray[np.float64]
 
@@ -115,15 +120,52 @@ class Evidence:
         """Number of foreground pixels in the reverse term."""
         return int(self.points.shape[0])
 
-    @cached_property
-    def distance_stack(self) -> F64:
-        """(3, S, S): ``dist`` and its x, y gradient, sampled together (one gather, not 3)."""
-        return np.concatenate([self.dist[None], self.grad])
 
-    @cached_property
-    def outline_stack(self) -> F64:
-        """(3, S, S): ``sdf`` and its x, y gradient."""
-        return np.concatenate([self.sdf[None], self.sdf_grad])
+class EvidenceBatch(NamedTuple):
+    """The evidence of n ROIs stacked for the batched fit (torch, one device, float64).
+
+    Attributes:
+        points: (n, N, 2) image px of each ROI's reverse-term pixels, padded to the most.
+        valid: (n, N) bool: which of them are real.
+        real: (n,) how many are real.
+        maps: (6, n, S, S) distance, its x, y gradient, signed outline distance, its x, y
+            gradient, padded to the largest grid side S.
+        size: (n,) each grid's own side.
+        origin: (n, 2) image px of grid pixel (0, 0).
+        step: (n,) image px per grid pixel.
+    """
+
+    points: Tensor
+    valid: Tensor
+    real: Tensor
+    maps: Tensor
+    size: Tensor
+    origin: Tensor
+    step: Tensor
+
+    @classmethod
+    def stack(cls, evidence: Sequence[Evidence], device: torch.device) -> EvidenceBatch:
+        """The ROIs' evidence on ``device``."""
+        points, valid = stack_points([e.points for e in evidence], device)
+        side = max([1, *(e.dist.shape[-1] for e in evidence)])
+        maps = torch.zeros((6, len(evidence), side, side), dtype=torch.float64)
+        for i, e in enumerate(evidence):  # preparation: a copy per ROI, once per fit
+            s = e.dist.shape[-1]
+            for c, plane in enumerate((e.dist, *e.grad, e.sdf, *e.sdf_grad)):
+                maps[c, i, :s, :s] = torch.from_numpy(np.ascontiguousarray(plane, np.float64))
+
+        def f64(a: ArrayLike) -> Tensor:
+            return torch.as_tensor(np.asarray(a, np.float64), device=device)
+
+        return cls(
+            points,
+            valid,
+            valid.sum(-1).to(torch.float64),
+            maps.to(device),
+            torch.as_tensor([e.dist.shape[-1] for e in evidence], device=device),
+            f64([e.origin for e in evidence]).reshape(-1, 2),
+            f64([e.step for e in evidence]),
+        )
 
 
 @dataclass(frozen=True)
@@ -137,13 +179,33 @@ class FitResult:
     improved: bool
 
 
-def cauchy(r: F64, c: float) -> tuple[F64, F64]:
+class FitResults(NamedTuple):
+    """Outcomes of the fits of n ROIs (:func:`refine_poses`), numpy on the host."""
+
+    R: F64  # (n, 3, 3)
+    t: F64  # (n, 3) mm
+    cost: F64  # (n,)
+    start_cost: F64  # (n,)
+    improved: NDArray[np.bool_]  # (n,)
+
+    def row(self, i: int) -> FitResult:
+        """ROI ``i``'s outcome."""
+        return FitResult(
+            self.R[i],
+            self.t[i],
+            float(self.cost[i]),
+            float(self.start_cost[i]),
+            bool(self.improved[i]),
+        )
+
+
+def cauchy(r: Tensor, c: float) -> tuple[Tensor, Tensor]:
     """Cauchy loss ρ(r) = c²/2 · log(1 + (r/c)²) and its IRLS weight ρ'(r)/r."""
     q = (r / c) ** 2
-    return 0.5 * c * c * np.log1p(q), 1.0 / (1.0 + q)
+    return 0.5 * c * c * torch.log1p(q), 1.0 / (1.0 + q)
 
 
-def _geman_mcclure(r: F64, c: float) -> tuple[F64, F64]:
+def _geman_mcclure(r: Tensor, c: float) -> tuple[Tensor, Tensor]:
     """Geman-McClure loss ρ(r) = c²/2 · r²/(c² + r²) and its IRLS weight ρ'(r)/r.
 
     Redescending: a residual far beyond ``c`` costs a constant and pulls with ~zero force.
@@ -152,229 +214,458 @@ def _geman_mcclure(r: F64, c: float) -> tuple[F64, F64]:
     return 0.5 * c * c * q / (1.0 + q), 1.0 / (1.0 + q) ** 2
 
 
-def _on_segments(p: F64, a: F64, ab: F64) -> tuple[F64, F64]:
+def _on_segments(p: Tensor, a: Tensor, ab: Tensor) -> tuple[Tensor, Tensor]:
     """Closest points of segments ``a + τ·ab`` (τ in [0, 1]) to points ``p`` (broadcast over
     the leading axes): τ and ``p`` minus the closest point."""
     ap = p - a
-    tau = np.clip((ap * ab).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12), 0.0, 1.0)
+    tau = ((ap * ab).sum(-1) / (ab**2).sum(-1).clamp(min=1e-12)).clamp(0.0, 1.0)
     return tau, ap - tau[..., None] * ab
 
 
-def _bilinear(grid: F64, xy: F64) -> F64:
-    """Sample (..., S, S) grids at (B, M, 2) grid coordinates (clamped to the border)."""
-    S = grid.shape[-1]
-    x = np.clip(xy[..., 0], 0.0, S - 1.0)
-    y = np.clip(xy[..., 1], 0.0, S - 1.0)
-    x0 = np.minimum(np.floor(x).astype(np.int64), S - 2)
-    y0 = np.minimum(np.floor(y).astype(np.int64), S - 2)
-    fx, fy = x - x0, y - y0
-    g00, g01 = grid[..., y0, x0], grid[..., y0, x0 + 1]
-    g10, g11 = grid[..., y0 + 1, x0], grid[..., y0 + 1, x0 + 1]
-    out: F64 = (g00 * (1 - fx) + g01 * fx) * (1 - fy) + (g10 * (1 - fx) + g11 * fx) * fy
-    return out
+def _take(x: Tensor, index: Tensor) -> Tensor:
+    """``x`` (B, M, ...) at ``index`` (B, N) along its second axis: (B, N, ...)."""
+    flat = index.reshape(index.shape[0], -1, *([1] * (x.ndim - 2)))
+    out = torch.gather(x, 1, flat.expand(-1, -1, *x.shape[2:]))
+    return out.reshape(*index.shape, *x.shape[2:])
+
+
+class _Rows(NamedTuple):
+    """Per batch row (a start of one ROI): its ROI's intrinsics, grid and points."""
+
+    roi: Tensor  # (B,) ROI index
+    K: Tensor  # (B, 3, 3)
+    points: Tensor  # (B, N, 2) evidence px
+    valid: Tensor  # (B, N)
+    real: Tensor  # (B,) how many are real
+    origin: Tensor  # (B, 1, 2)
+    step: Tensor  # (B, 1, 1)
+    size: Tensor  # (B, 1) grid side
 
 
 class _Problem:
-    """Residuals, costs and Jacobians for a batch of poses against one evidence."""
+    """Residuals, costs and Jacobians of B rows (poses), each against its ROI's evidence.
+
+    Args:
+        arc, ev, K, s: The needle, the ROIs' evidence, their intrinsics (n, 3, 3), the fit.
+        roi: (B,) each row's ROI.
+        points: (n, P, 3) camera points of the wires' surfaces, mm, and which are real
+            (n, P), for the depth term; an ROI without points has none real.
+        depth: the depth term's settings.
+    """
 
     def __init__(
         self,
         arc: ArcModel,
-        ev: Evidence,
-        K: F64,
+        ev: EvidenceBatch,
+        K: Tensor,
         s: FitSettings,
-        points: F64 | None = None,
+        roi: Tensor,
+        points: tuple[Tensor, Tensor] | None = None,
         depth: DepthSettings | None = None,
     ) -> None:
-        self.model, self.ev, self.K, self.s = arc.points(s.samples), ev, K, s
-        self.arc, self.points = arc, points
-        self.depth = depth or DepthSettings()
-        self.wire_mm = arc.wire_radii(s.samples)  # the wire itself (what explains pixels)
-        self.wire = self.wire_mm if s.tube else np.zeros(s.samples)  # what the cost fits
-        self.fx, self.fy = K[0, 0], K[1, 1]
-
-    def project(self, R: F64, t: F64) -> tuple[F64, F64, F64]:
-        """Camera points (B, M, 3), their object-centred part R·X (B, M, 3), pixels (B, M, 2)."""
-        rx = np.einsum("bij,mj->bmi", R, self.model)
-        X = rx + t[:, None, :]
-        z = np.maximum(X[..., 2], 1e-6)
-        uv = np.stack(
-            [
-                self.fx * X[..., 0] / z + self.K[0, 1] * X[..., 1] / z + self.K[0, 2],
-                self.fy * X[..., 1] / z + self.K[1, 2],
-            ],
-            -1,
+        opts = {"dtype": torch.float64, "device": K.device}
+        self.arc, self.ev, self.s = arc, ev, s
+        self.model = torch.as_tensor(arc.points(s.samples), **opts)  # type: ignore[arg-type]
+        wire_mm = arc.wire_radii(s.samples)
+        self.wire_mm = torch.as_tensor(wire_mm, **opts)  # type: ignore[arg-type]
+        # the wire itself explains pixels; the cost fits the tube only with ``tube``
+        self.wire = self.wire_mm if s.tube else torch.zeros_like(self.wire_mm)
+        self.rows = _Rows(
+            roi,
+            K[roi],
+            ev.points[roi],
+            ev.valid[roi],
+            ev.real[roi],
+            ev.origin[roi][:, None],
+            ev.step[roi][:, None, None],
+            ev.size[roi][:, None],
         )
-        return X, rx, uv
+        self.depth = depth or DepthSettings()
+        self.points = None
+        if points is not None:
+            P, ok = points[0][roi], points[1][roi]
+            self.points = (P, ok, ok.sum(-1).clamp(min=1).to(torch.float64))
 
-    def jac_points(self, X: F64, rx: F64) -> F64:
+    def project(self, R: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Camera points (B, M, 3), their object-centred part R·X (B, M, 3), pixels (B, M, 2)."""
+        rx = self.model @ R.transpose(1, 2)
+        X = rx + t[:, None, :]
+        z = X[..., 2].clamp(min=1e-6)
+        K = self.rows.K[:, None]
+        u = K[..., 0, 0] * X[..., 0] / z + K[..., 0, 1] * X[..., 1] / z + K[..., 0, 2]
+        v = K[..., 1, 1] * X[..., 1] / z + K[..., 1, 2]
+        return X, rx, torch.stack([u, v], -1)
+
+    def jac_points(self, X: Tensor, rx: Tensor) -> Tensor:
         """d(pixel)/d(ω, δt) of each model point, (B, M, 2, 6) for X → exp(ω)·rx + t + δt."""
-        z = np.maximum(X[..., 2], 1e-6)
-        P = np.zeros((*X.shape[:-1], 2, 3))
-        P[..., 0, 0] = self.fx / z
-        P[..., 0, 1] = self.K[0, 1] / z
-        P[..., 0, 2] = -(self.fx * X[..., 0] + self.K[0, 1] * X[..., 1]) / z**2
-        P[..., 1, 1] = self.fy / z
-        P[..., 1, 2] = -self.fy * X[..., 1] / z**2
-        dX = np.concatenate([-_skew(rx), np.broadcast_to(np.eye(3), (*X.shape[:-1], 3, 3))], -1)
-        out: F64 = P @ dX
-        return out
+        z = X[..., 2].clamp(min=1e-6)
+        K = self.rows.K[:, None]
+        zero = torch.zeros_like(z)
+        fx, skew_, fy = K[..., 0, 0] / z, K[..., 0, 1] / z, K[..., 1, 1] / z
+        # d(pixel)/dX: rows p_u, p_v; d(pixel)/dω = p·(−[rx]×) = rx × p, d(pixel)/dδt = p
+        # (written out: a batched matmul of 2×3 by 3×3 per point costs more than its sums)
+        p_u = (fx, skew_, -(fx * X[..., 0] + skew_ * X[..., 1]) / z)
+        p_v = (zero, fy, -fy * X[..., 1] / z)
+        a0, a1, a2 = rx.unbind(-1)
 
-    def wire_px(self, X: F64, rx: F64) -> tuple[F64, F64]:
+        def row(p: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+            p0, p1, p2 = p
+            cross = (a1 * p2 - a2 * p1, a2 * p0 - a0 * p2, a0 * p1 - a1 * p0)
+            return torch.stack([*cross, p0, p1, p2], -1)
+
+        return torch.stack([row(p_u), row(p_v)], -2)
+
+    def wire_px(self, X: Tensor, rx: Tensor) -> tuple[Tensor, Tensor]:
         """Wire radius in image px at each model point (B, M) and its d/d(ω, δt) (B, M, 6)."""
-        z = np.maximum(X[..., 2], 1e-6)
+        z = X[..., 2].clamp(min=1e-6)
         rho = self.radius_px(self.wire, z)
-        dz = np.zeros((*X.shape[:-1], 6))  # dz/dω = (R·X)_y, −(R·X)_x, 0; dz/dδt = (0, 0, 1)
-        dz[..., 0], dz[..., 1], dz[..., 5] = rx[..., 1], -rx[..., 0], 1.0
+        zero = torch.zeros_like(z)
+        # dz/dω = ((R·X)_y, −(R·X)_x, 0), dz/dδt = (0, 0, 1)
+        dz = torch.stack([rx[..., 1], -rx[..., 0], zero, zero, zero, torch.ones_like(z)], -1)
         return rho, -(rho / z)[..., None] * dz
 
-    def radius_px(self, wire_mm: F64, z: F64) -> F64:
-        """Image radius (px) of wire radii ``wire_mm`` at depths ``z`` mm."""
-        out: F64 = wire_mm * np.sqrt(self.fx * self.fy) / z
-        return out
+    def radius_px(self, wire_mm: Tensor, z: Tensor) -> Tensor:
+        """Image radius (px) of wire radii ``wire_mm`` at depths ``z`` (B, M) mm."""
+        K = self.rows.K
+        return wire_mm * torch.sqrt(K[:, 0, 0] * K[:, 1, 1])[:, None] / z
 
-    def explained(self, R: F64, t: F64, tol_px: float) -> float:
-        """Share of the evidence pixels within ``tol_px`` of the projected wire's tube at the
-        pose ``R`` (3, 3), ``t`` (3,) mm."""
-        X, _, uv = self.project(R[None], t[None])
-        rho = self.radius_px(self.wire_mm, np.maximum(X[0, :, 2], 1e-6))
-        a, ab = uv[0, :-1], np.diff(uv[0], axis=0)  # (M-1, 2) segments
-        tau, diff = _on_segments(self.ev.points[:, None, :], a[None], ab[None])  # (N, M-1)
-        d = np.linalg.norm(diff, axis=-1)
-        tube = (1 - tau) * rho[:-1] + tau * rho[1:]
-        return float(((d - tube) <= tol_px).any(axis=1).mean())
+    def explained(self, R: Tensor, t: Tensor, tol_px: float) -> Tensor:
+        """Share (B,) of each row's evidence pixels within ``tol_px`` of the projected wire's
+        tube at the poses ``R`` (B, 3, 3), ``t`` (B, 3) mm."""
+        X, _, uv = self.project(R, t)
+        rho = self.radius_px(self.wire_mm, X[..., 2].clamp(min=1e-6))
+        a, ab = uv[:, :-1], uv[:, 1:] - uv[:, :-1]  # (B, M-1, 2) segments
+        tau, diff = _on_segments(self.rows.points[:, :, None], a[:, None], ab[:, None])
+        d = torch.linalg.vector_norm(diff, dim=-1)  # (B, N, M-1)
+        tube = (1 - tau) * rho[:, None, :-1] + tau * rho[:, None, 1:]
+        near = ((d - tube) <= tol_px).any(-1) & self.rows.valid
+        share: Tensor = near.sum(-1) / self.rows.real
+        return share
 
-    def _nearest(self, uv: F64, rho: F64) -> _Nearest:
-        """Each evidence point's closest point on the projected wire (B poses, M samples)."""
-        e = self.ev.points  # (N, 2)
+    def _nearest(self, uv: Tensor, rho: Tensor) -> _Nearest:
+        """Each evidence point's closest point on its row's projected wire (M samples)."""
+        e = self.rows.points  # (B, N, 2)
         m = uv.shape[1]
         # nearest centre-line sample, then the closest point on its two adjacent segments:
         # O(N·M) small arithmetic instead of a point-to-every-segment distance
-        d2s = (e**2).sum(-1)[None, :, None] + (uv**2).sum(-1)[:, None, :]
-        d2s = d2s - 2.0 * np.einsum("nk,bmk->bnm", e, uv)
+        d2s = (e**2).sum(-1)[..., None] + (uv**2).sum(-1)[:, None, :] - 2.0 * e @ uv.transpose(1, 2)
         k0 = d2s.argmin(-1)  # (B, N)
-        seg = np.clip(np.stack([k0 - 1, k0], -1), 0, m - 2)  # (B, N, 2) candidate segments
-        bi = np.arange(len(uv))[:, None, None]
-        a, b = uv[bi, seg], uv[bi, seg + 1]  # (B, N, 2, 2)
+        seg = torch.stack([k0 - 1, k0], -1).clamp(0, m - 2)  # (B, N, 2) candidate segments
+        a, b = _take(uv, seg), _take(uv, seg + 1)  # (B, N, 2, 2)
         ab = b - a
-        tau, diff = _on_segments(e[None, :, None, :], a, ab)
+        tau, diff = _on_segments(e[:, :, None, :], a, ab)
         d2 = (diff**2).sum(-1)
-        pick = d2.argmin(-1)[..., None]  # (B, N, 1)
-        d_line = np.sqrt(np.take_along_axis(d2, pick, -1)[..., 0])
-        k = np.take_along_axis(seg, pick, -1)[..., 0]  # (B, N) chosen segment
-        tk = np.take_along_axis(tau, pick, -1)  # (B, N, 1)
-        bj = np.arange(len(uv))[:, None]
-        rho_c = (1 - tk[..., 0]) * rho[bj, k] + tk[..., 0] * rho[bj, k + 1]
-        d_rev = np.maximum(d_line - rho_c, 0.0)  # zero inside the tube
-        dv = np.take_along_axis(diff, pick[..., None], -2)[..., 0, :]  # e − c, (B, N, 2)
-        sv = np.take_along_axis(ab, pick[..., None], -2)[..., 0, :]
-        return _Nearest(d_rev, d_line, dv, sv, k, tk, bj)
+        pick = d2.argmin(-1, keepdim=True)  # (B, N, 1)
+        d_line = torch.sqrt(torch.gather(d2, -1, pick)[..., 0])
+        k = torch.gather(seg, -1, pick)[..., 0]  # (B, N) chosen segment
+        tk = torch.gather(tau, -1, pick)  # (B, N, 1)
+        rho_c = (1 - tk[..., 0]) * torch.gather(rho, 1, k) + tk[..., 0] * torch.gather(
+            rho, 1, k + 1
+        )
+        # zero inside the tube, and for padding
+        d_rev = (d_line - rho_c).clamp(min=0.0) * self.rows.valid
+        pick2 = pick[..., None].expand(-1, -1, 1, 2)
+        dv = torch.gather(diff, 2, pick2)[:, :, 0]  # e − c, (B, N, 2)
+        sv = torch.gather(ab, 2, pick2)[:, :, 0]
+        return _Nearest(d_rev, d_line, dv, sv, k, tk)
 
-    def _sides(self, uv: F64, rho: F64) -> tuple[F64, F64, F64, F64]:
+    def _sides(self, uv: Tensor, rho: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The distance transform at the samples (3, B, M), the signed outline distance on the
         tube's two sides (3, B, 2M) (values and x, y gradients), the sides' normals (B, M, 2)
         and which side samples count (B, 2M)."""
-        ev = self.ev
-        grid_xy = (uv - ev.origin) / ev.step
-        fwd = _bilinear(ev.distance_stack, grid_xy)  # (3, B, M): distance, d/dx, d/dy
+        fwd = self._bilinear(0, uv)  # (3, B, M): distance, d/dx, d/dy
         # the tube's two sides: ±rho along the projected centre line's normal
-        tangent = np.gradient(uv, axis=1)  # (B, M, 2), px per sample
-        t_len = np.linalg.norm(tangent, axis=-1, keepdims=True)
-        normal = np.stack([-tangent[..., 1], tangent[..., 0]], -1) / np.maximum(t_len, 1e-9)
-        sides = np.concatenate([uv + rho[..., None] * normal, uv - rho[..., None] * normal], 1)
-        side_xy = (sides - ev.origin) / ev.step
-        side = _bilinear(ev.outline_stack, side_xy)  # (3, B, 2M): signed distance, d/dx, d/dy
+        tangent = _gradient(uv)  # (B, M, 2), px per sample
+        t_len = torch.linalg.vector_norm(tangent, dim=-1, keepdim=True)
+        normal = torch.stack([-tangent[..., 1], tangent[..., 0]], -1) / t_len.clamp(min=1e-9)
+        off = rho[..., None] * normal
+        side = self._bilinear(3, torch.cat([uv + off, uv - off], 1))  # (3, B, 2M)
         # a side is defined where the centre line runs across the view (not where it turns
         # back towards the camera) and the wire is wider than a pixel
         use = (t_len[..., 0] > 0.25) & (rho > 0.5) & self.s.tube
-        return fwd, side, normal, np.concatenate([use, use], 1)
+        return fwd, side, normal, torch.cat([use, use], 1)
 
-    def evaluate(
-        self, R: F64, t: F64, with_jacobian: bool
-    ) -> tuple[F64, F64 | None, F64 | None, F64 | None]:
-        """Robust image cost (B,) and, with the Jacobian, residuals (B, N+3M), IRLS weights and
-        J (B, N+3M, 6)."""
-        s = self.s
+    def _bilinear(self, first: int, uv: Tensor) -> Tensor:
+        """Maps ``first``..``first + 2`` of each row's ROI bilinearly sampled at image px
+        ``uv`` (B, Q, 2) (clamped to the grid's border): (3, B, Q)."""
+        rows, maps = self.rows, self.ev.maps
+        side = maps.shape[-1]
+        xy = (uv - rows.origin) / rows.step
+        top = (rows.size - 1).to(xy.dtype)
+        x = torch.minimum(xy[..., 0].clamp(min=0.0), top)
+        y = torch.minimum(xy[..., 1].clamp(min=0.0), top)
+        x0 = torch.minimum(torch.floor(x).long(), rows.size - 2)
+        y0 = torch.minimum(torch.floor(y).long(), rows.size - 2)
+        fx, fy = x - x0, y - y0
+        base = (rows.roi[:, None] * side + y0) * side + x0  # (B, Q) flat index
+        corners = torch.stack([base, base + 1, base + side, base + side + 1], -1)
+        g = maps[first : first + 3].reshape(3, -1)[:, corners.reshape(-1)]
+        g = g.reshape(3, *corners.shape)
+        top_row = g[..., 0] * (1 - fx) + g[..., 1] * fx
+        return top_row * (1 - fy) + (g[..., 2] * (1 - fx) + g[..., 3] * fx) * fy
+
+    def evaluate(self, R: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Robust cost (B,), the normal equations of its IRLS-weighted residuals (JᵀWJ
+        (B, 6, 6), JᵀWr (B, 6); :func:`.lm.normal_equations`) and the image residuals
+        (B, N+3M): reverse (px), forward (px), the tube's sides (signed px)."""
+        s, rows = self.s, self.rows
         X, rx, uv = self.project(R, t)
         rho, drho = self.wire_px(X, rx)
-        n, m = self.ev.points.shape[0], uv.shape[1]
+        m = uv.shape[1]
         near = self._nearest(uv, rho)
         fwd, side, normal, use2 = self._sides(uv, rho)
         d_fwd, d_side = fwd[0], side[0]
         rho_r, w_r = cauchy(near.d_rev, s.scale_reverse)
         rho_f, w_f = _geman_mcclure(d_fwd, s.scale_forward)
         rho_s, w_s = _geman_mcclure(d_side, s.scale_outline)
-        rho_s = np.where(use2, rho_s, 0.0)
-        cost = rho_r.mean(-1) + s.forward_weight * rho_f.mean(-1)
+        rho_s = torch.where(use2, rho_s, 0.0)
+        cost = (rho_r * rows.valid).sum(-1) / rows.real + s.forward_weight * rho_f.mean(-1)
         cost = cost + s.outline_weight * rho_s.sum(-1) / (2 * m)
-        if self.points is not None:
-            r_d, J_d = wire_residuals(R, t, self.points, self.arc)
-            rho_d, w_d = cauchy(r_d, self.depth.scale_mm)
-            cost = cost + self.depth.weight * rho_d.mean(-1)
-        if not with_jacobian:
-            return cost, None, None, None
         Jp = self.jac_points(X, rx)  # (B, M, 2, 6)
         J_rev = _reverse_jacobian(near, Jp, drho)
         # forward: r = dist(uv); dr/dp = ∇dist · d(uv)/dp
-        J_fwd = np.einsum("bmk,bmkp->bmp", np.moveaxis(fwd[1:], 0, -1), Jp)
+        J_fwd = torch.einsum("kbm,bmkp->bmp", fwd[1:], Jp)
         # sides: r = sdf(uv ± rho·n); the normal's own turn with the pose is left out
-        gs = np.moveaxis(side[1:], 0, -1)
         dn = normal[..., None] * drho[..., None, :]
-        J_side = np.einsum("bmk,bmkp->bmp", gs, np.concatenate([Jp + dn, Jp - dn], 1))
-        r = np.concatenate([near.d_rev, d_fwd, d_side], 1)
-        w_side = s.outline_weight * np.where(use2, w_s, 0.0) / (2 * m)
-        w = np.concatenate([w_r / n, s.forward_weight * w_f / m, w_side], 1)
-        J = np.concatenate([J_rev, J_fwd, J_side], 1)
+        J_side = torch.einsum("kbm,bmkp->bmp", side[1:], torch.cat([Jp + dn, Jp - dn], 1))
+        w_side = s.outline_weight * torch.where(use2, w_s, 0.0) / (2 * m)
+        w_rev = w_r * rows.valid / rows.real[:, None]
+        terms = [
+            (near.d_rev, w_rev, J_rev),
+            (d_fwd, s.forward_weight * w_f / m, J_fwd),
+            (d_side, w_side, J_side),
+        ]
         if self.points is not None:
-            r = np.concatenate([r, r_d], 1)
-            w = np.concatenate([w, self.depth.weight * w_d / r_d.shape[1]], 1)
-            J = np.concatenate([J, J_d], 1)
-        return cost, r, w, J
+            P, ok, count = self.points
+            r_d, J_d = wire_residuals(R, t, P, self.arc)
+            r_d = r_d * ok
+            rho_d, w_d = cauchy(r_d, self.depth.scale_mm)
+            cost = cost + self.depth.weight * (rho_d * ok).sum(-1) / count
+            terms.append((r_d, self.depth.weight * w_d * ok / count[:, None], J_d))
+        H, g = normal_equations(*terms[0])
+        for term in terms[1:]:
+            H_k, g_k = normal_equations(*term)
+            H, g = H + H_k, g + g_k
+        return cost, H, g, torch.cat([near.d_rev, d_fwd, d_side], 1)
+
+
+def _gradient(uv: Tensor) -> Tensor:
+    """d(uv)/d(sample) along the samples (B, M, 2): central differences, one-sided at the
+    ends (as ``numpy.gradient``)."""
+    inner = 0.5 * (uv[:, 2:] - uv[:, :-2])
+    return torch.cat([uv[:, 1:2] - uv[:, :1], inner, uv[:, -1:] - uv[:, -2:-1]], 1)
 
 
 class _Nearest(NamedTuple):
     """Evidence points (N) against the projected wire of B poses (see :meth:`_Problem._nearest`)."""
 
-    d_rev: F64  # (B, N) distance to the tube, px (0 inside)
-    d_line: F64  # (B, N) distance to the centre line, px
-    dv: F64  # (B, N, 2) point minus its closest centre-line point
-    sv: F64  # (B, N, 2) the chosen segment's direction
-    k: NDArray[np.int64]  # (B, N) the chosen segment
-    tk: F64  # (B, N, 1) where on it
-    bj: NDArray[np.int64]  # (B, 1) batch index
+    d_rev: Tensor  # (B, N) distance to the tube, px (0 inside, and for padding)
+    d_line: Tensor  # (B, N) distance to the centre line, px
+    dv: Tensor  # (B, N, 2) point minus its closest centre-line point
+    sv: Tensor  # (B, N, 2) the chosen segment's direction
+    k: Tensor  # (B, N) the chosen segment
+    tk: Tensor  # (B, N, 1) where on it
 
 
-def _reverse_jacobian(near: _Nearest, Jp: F64, drho: F64) -> F64:  # noqa: N803 (math names)
+def _reverse_jacobian(near: _Nearest, Jp: Tensor, drho: Tensor) -> Tensor:  # noqa: N803
     """d(reverse residual)/d(ω, δt) (B, N, 6): r = û·(e − c) − rho_c with c the closest point
     (moving with the pose) and û the segment normal towards e, or the direction from c where c
     is an end of the arc."""
-    k, tk, bj, dv, sv = near.k, near.tk, near.bj, near.dv, near.sv
-    Jc = (1 - tk[..., None]) * Jp[bj, k] + tk[..., None] * Jp[bj, k + 1]  # (B, N, 2, 6)
-    seg_n = np.stack([-sv[..., 1], sv[..., 0]], -1)
-    seg_n /= np.maximum(np.linalg.norm(seg_n, axis=-1, keepdims=True), 1e-12)
-    seg_n *= np.where((seg_n * dv).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+    k, tk, dv, sv = near.k, near.tk, near.dv, near.sv
+    Jc = (1 - tk[..., None]) * _take(Jp, k) + tk[..., None] * _take(Jp, k + 1)  # (B, N, 2, 6)
+    seg_n = torch.stack([-sv[..., 1], sv[..., 0]], -1)
+    seg_n = seg_n / torch.linalg.vector_norm(seg_n, dim=-1, keepdim=True).clamp(min=1e-12)
+    seg_n = torch.where((seg_n * dv).sum(-1, keepdim=True) < 0, -seg_n, seg_n)
     interior = (tk > 0) & (tk < 1)
-    unit = dv / np.maximum(near.d_line[..., None], 1e-9)
-    u_hat = np.where(interior | (near.d_line[..., None] < 1e-9), seg_n, unit)
-    drho_c = (1 - tk) * drho[bj, k] + tk * drho[bj, k + 1]  # (B, N, 6)
-    J_rev: F64 = -np.einsum("bnk,bnkp->bnp", u_hat, Jc) - drho_c
+    unit = dv / near.d_line[..., None].clamp(min=1e-9)
+    u_hat = torch.where(interior | (near.d_line[..., None] < 1e-9), seg_n, unit)
+    drho_c = (1 - tk) * _take(drho, k) + tk * _take(drho, k + 1)  # (B, N, 6)
+    J_rev = -torch.einsum("bnk,bnkp->bnp", u_hat, Jc) - drho_c
     return J_rev * (near.d_rev > 0)[..., None]
 
 
-def _log_so3(R: F64) -> F64:
-    """(3, 3) rotation → rotation vector (angles below π)."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(c)
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if theta < 1e-9:
-        return 0.5 * v
-    return v * theta / (2.0 * np.sin(theta)) if theta < np.pi - 1e-6 else v * 0.0 + np.pi * _axis(R)
+class Starts(NamedTuple):
+    """Extra starting poses of a batched fit (e.g. fits to the depth points alone): rotations
+    (k, 3, 3), translations (k, 3) mm and the ROI (k,) each starts."""
+
+    R: F64
+    t: F64
+    roi: NDArray[np.int64]
+
+    @classmethod
+    def none(cls) -> Starts:
+        """No extra start."""
+        return cls(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))
 
 
-def _axis(R: F64) -> F64:
-    """Rotation axis of a half-turn."""
-    _, V = np.linalg.eigh(0.5 * (R + R.T))
-    return V[:, -1]
+def refine_poses(
+    R_init: F64,
+    t_init: F64,
+    K: F64,
+    evidence: Sequence[Evidence],
+    arc: ArcModel,
+    settings: FitSettings | None = None,
+    points: Sequence[F64 | None] | None = None,
+    starts: Starts | None = None,
+    own_priors: bool = False,
+    depth: DepthSettings | None = None,
+    device: torch.device | str = "cpu",
+) -> FitResults:
+    """Fit the arc's poses of n ROIs to their ``evidence``, all at once (see the module
+    docstring), each from its ``(R_init, t_init)`` (and its mirror).
+
+    Args:
+        R_init: (n, 3, 3) starting rotations, model → camera.
+        t_init: (n, 3) starting translations, mm.
+        K: (3, 3) or (n, 3, 3) intrinsics, px.
+        evidence: each ROI's foreground evidence.
+        arc: the needle's centre line.
+        settings: the image fit (defaults when None).
+        points: per ROI, (N, 3) camera points of the wire's visible surface, mm, or None
+            (RGB-D: the depth term, weighted by ``depth``; with them the fit also starts from
+            the tilt mirror).
+        starts: More starting poses, e.g. fits to the points alone.
+        own_priors: For ROIs with points: centre each start's prior on itself instead of on
+            the first start (the network's pose), so that a start far from it is not held
+            back (for when the network's pose disagrees with the points).
+        depth: the depth term's settings (defaults when None).
+        device: where the fit runs (float64).
+
+    Returns:
+        Per ROI the fitted pose where it beats the start's cost (``improved``), else the
+        start. Deterministic; never NaN (a non-finite fit returns the start).
+    """
+    s = settings or FitSettings()
+    n = len(evidence)
+    R_init = np.asarray(R_init, float).reshape(n, 3, 3)
+    t_init = np.asarray(t_init, float).reshape(n, 3)
+    K = np.broadcast_to(np.asarray(K, float), (n, 3, 3))
+    pts = list(points) if points is not None else [None] * n
+    has_points = np.array([p is not None for p in pts], bool)
+    finite = np.isfinite(R_init).all(axis=(1, 2)) & np.isfinite(t_init).all(1)
+    active = finite & np.array([e.size >= s.min_evidence for e in evidence], bool)
+    out = FitResults(
+        R_init.copy(),
+        t_init.copy(),
+        np.full(n, np.inf),
+        np.full(n, np.inf),
+        np.zeros(n, bool),
+    )
+    if not active.any():
+        return out
+    idx = np.flatnonzero(active)
+    extra = starts or Starts.none()
+    keep = active[extra.roi]
+    remap = np.cumsum(active) - 1
+    dev = torch.device(device)
+    with fit_threads(dev):
+        res = _fit_batch(
+            dev,
+            arc,
+            s,
+            depth or DepthSettings(),
+            [evidence[int(i)] for i in idx],
+            (R_init[idx], t_init[idx], K[idx]),
+            [pts[i] for i in idx],
+            Starts(extra.R[keep], extra.t[keep], remap[extra.roi[keep]]),
+            own_priors & has_points[idx],
+        )
+    for field, value in zip(out, res, strict=True):
+        field[idx] = value
+    return out
+
+
+def _fit_batch(
+    device: torch.device,
+    arc: ArcModel,
+    s: FitSettings,
+    depth: DepthSettings,
+    evidence: list[Evidence],
+    poses: tuple[F64, F64, F64],
+    points: list[F64 | None],
+    starts: Starts,
+    own_priors: NDArray[np.bool_],
+) -> tuple[F64, F64, F64, F64, NDArray[np.bool_]]:
+    """:func:`refine_poses` on ROIs that all have evidence enough: (R, t, cost, start cost,
+    improved) per ROI."""
+    R0, t0, K = (torch.as_tensor(a, dtype=torch.float64, device=device) for a in poses)
+    n = len(evidence)
+    mirror = np.array([s.mirror_start or p is not None for p in points], bool)
+    roi, R_s, t_s, slot = _start_poses(R0, t0, arc, mirror, starts)
+    # x = (ω, δt): R = exp(ω)·R_start, t = t_start + δt. The prior holds the directions the
+    # image does not fix (depth, tilt) near the network's pose (unless ``own_priors``)
+    held = ((slot > 0) & ~torch.as_tensor(own_priors, device=device)[roi])[:, None]
+    x_prior = torch.cat([-log_so3(R_s @ R0[roi].transpose(1, 2)), t0[roi] - t_s], -1)
+    x_prior = torch.where(held, x_prior, 0.0)
+    with_points = [p if p is not None else np.zeros((0, 3)) for p in points]
+    stacked = stack_points(with_points, device) if any(p is not None for p in points) else None
+    prob = _Problem(arc, EvidenceBatch.stack(evidence, device), K, s, roi, stacked, depth)
+    sigma = np.array([np.deg2rad(s.prior_deg)] * 3 + list(s.prior_mm), float)
+    sq = torch.as_tensor(np.sqrt(s.prior_weight) / sigma, device=device)
+    prior_H = torch.diag(sq**2)
+
+    def total(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        c, H, g, _ = prob.evaluate(exp_so3(x[:, :3]) @ R_s, t_s + x[:, 3:])
+        return c + 0.5 * ((sq * (x - x_prior)) ** 2).sum(-1), H, g
+
+    def prior(x: Tensor) -> tuple[Tensor, Tensor]:
+        return prior_H, sq**2 * (x - x_prior)
+
+    x0 = torch.zeros(len(roi), 6, dtype=torch.float64, device=device)
+    first = total(x0)
+    start_cost = first[0][slot == 0]  # the network's pose: its first start, x_prior 0
+    x, cost = levenberg_marquardt(
+        total, x0, torch.add, s.iterations, s.lambda0, prior=prior, group=roi, first=first
+    )
+    best, ok = _best_rows(cost, roi, slot, n)
+    R_best = exp_so3(x[best, :3]) @ R_s[best]
+    t_best = t_s[best] + x[best, 3:]
+    ok &= torch.isfinite(cost[best]) & (cost[best] < start_cost)
+    ok &= torch.isfinite(R_best).all(-1).all(-1) & torch.isfinite(t_best).all(-1)
+    U, _, Vt = torch.linalg.svd(torch.where(ok[:, None, None], R_best, R0))
+    R_fit = U @ Vt
+    if s.min_explained > 0:
+        here = torch.arange(n, device=device)
+        guard = _Problem(arc, prob.ev, K, s, here).explained(R_fit, t_best, s.explained_tol_px)
+        ok &= guard >= s.min_explained
+    R_out = torch.where(ok[:, None, None], R_fit, R0)
+    t_out = torch.where(ok[:, None], t_best, t0)
+    cost_out = torch.where(ok, cost[best], start_cost)
+    return tuple(a.cpu().numpy() for a in (R_out, t_out, cost_out, start_cost, ok))  # type: ignore[return-value]
+
+
+def _best_rows(cost: Tensor, roi: Tensor, slot: Tensor, n: int) -> tuple[Tensor, Tensor]:
+    """Each ROI's cheapest row (the first of equals) and whether none of its costs is NaN."""
+    table = torch.full((n, int(slot.max()) + 1), torch.inf, dtype=cost.dtype, device=cost.device)
+    table[roi, slot] = cost
+    nan = torch.isnan(table).any(-1)
+    pick = torch.nan_to_num(table, nan=torch.inf).argmin(-1)
+    counts = torch.bincount(roi, minlength=n)  # rows are grouped by ROI
+    return torch.cumsum(counts, 0) - counts + pick, ~nan
+
+
+def _start_poses(
+    R_init: Tensor, t_init: Tensor, arc: ArcModel, mirror: NDArray[np.bool_], starts: Starts
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The fit's start rows, grouped by ROI: ROI (b,), rotations (b, 3, 3), translations
+    (b, 3) mm and each row's place among its ROI's starts (b,). Per ROI: the network's pose,
+    its tilt mirror (where ``mirror``) and its ``starts``, each with the network's tip and
+    tail (the data cost hardly tells them apart)."""
+    dev = R_init.device
+    n = len(R_init)
+    m = torch.as_tensor(np.flatnonzero(mirror), device=dev)
+    roi = torch.cat([torch.arange(n, device=dev), m, torch.as_tensor(starts.roi, device=dev)])
+    R = torch.cat(
+        [R_init, mirror_pose(R_init[m], t_init[m]), torch.as_tensor(starts.R, device=dev)]
+    )
+    t = torch.cat([t_init, t_init[m], torch.as_tensor(starts.t, device=dev)])
+    order = torch.as_tensor(np.argsort(roi.cpu().numpy(), kind="stable"), device=dev)
+    roi, R, t = roi[order], R[order], t[order]
+    R = same_ends(R, t, R_init[roi], t_init[roi], arc)
+    counts = torch.bincount(roi, minlength=n)
+    first = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(len(roi), device=dev) - first[roi]
+    return roi, R, t, slot
 
 
 def refine_pose(
@@ -389,89 +680,24 @@ def refine_pose(
     own_priors: bool = False,
     depth: DepthSettings | None = None,
 ) -> FitResult:
-    """Fit the arc's pose to ``evidence``, starting from ``(R_init, t_init)`` (and its mirror).
-
-    Args:
-        R_init: (3, 3) starting rotation, model → camera.
-        t_init: (3,) starting translation, mm.
-        K: (3, 3) intrinsics, px.
-        evidence: the ROI's foreground evidence.
-        arc: the needle's centre line.
-        settings: the image fit (defaults when None).
-        points: (N, 3) camera points of the wire's visible surface, mm (RGB-D: the depth term,
-            weighted by ``depth``; with them the fit also starts from the tilt mirror).
-        starts: More starting poses (R (3, 3), t (3,) mm), e.g. a fit to the points alone.
-        own_priors: With ``points``: centre each start's prior on itself instead of on the
-            first start (the network's pose), so that a start far from it is not held back
-            (for when the network's pose disagrees with the points).
-        depth: the depth term's settings (defaults when None).
-
-    Returns:
-        The fitted pose when it beats the start's cost (``improved``), else the start.
-        Deterministic; never NaN (a non-finite fit returns the start).
-    """
-    s = settings or FitSettings()
-    R_init, t_init, K = np.asarray(R_init, float), np.asarray(t_init, float), np.asarray(K, float)
-    if evidence.size < s.min_evidence or not (
-        np.isfinite(R_init).all() and np.isfinite(t_init).all()
-    ):
-        return FitResult(R_init, t_init, float("inf"), float("inf"), False)
-    if points is not None:
-        points = np.asarray(points, float).reshape(-1, 3)
-    prob = _Problem(arc, evidence, K, s, points, depth)
-    R_s, t_s = _start_poses(R_init, t_init, arc, s.mirror_start or points is not None, starts)
-    # x = (ω, δt): R = exp(ω)·R_start, t = t_start + δt. The prior holds the directions the
-    # image does not fix (depth, tilt) near the network's pose (unless ``own_priors``)
-    b = len(R_s)
-    sigma = np.array([np.deg2rad(s.prior_deg)] * 3 + list(s.prior_mm), float)
-    sq = np.sqrt(s.prior_weight) / sigma  # prior residual = sq · (x − x_prior)
-    x_prior = np.zeros((b, 6))
-    for i in range(1, 1 if own_priors and points is not None else b):
-        x_prior[i, :3] = -_log_so3(R_s[i] @ R_init.T)
-        x_prior[i, 3:] = t_init - t_s[i]
-
-    def total(x: F64) -> tuple[F64, F64, F64, F64]:
-        R, t = _exp_so3(x[:, :3]) @ R_s, t_s + x[:, 3:]
-        c, r, w, J = prob.evaluate(R, t, True)
-        rp = sq * (x - x_prior)
-        return c + 0.5 * (rp**2).sum(-1), r, w, J  # type: ignore[return-value]
-
-    start_cost = float(total(np.zeros((b, 6)))[0][0])
-    prior_H = np.diag(sq**2)
-
-    def prior(x: F64) -> tuple[F64, F64]:
-        return prior_H, sq**2 * (x - x_prior)
-
-    x, cost = levenberg_marquardt(
-        total, np.zeros((b, 6)), np.add, s.iterations, s.lambda0, prior=prior
+    """:func:`refine_poses` of one ROI: the pose ``R_init`` (3, 3), ``t_init`` (3,) mm fitted
+    to ``evidence`` (``points`` (N, 3) mm: its depth term), also from ``starts``."""
+    extra = Starts(
+        np.asarray([r for r, _ in starts], float).reshape(-1, 3, 3),
+        np.asarray([t for _, t in starts], float).reshape(-1, 3),
+        np.zeros(len(starts), np.int64),
     )
-    best = int(np.argmin(cost))
-    R_best = _exp_so3(x[best, :3]) @ R_s[best]
-    t_best = t_s[best] + x[best, 3:]
-    ok = bool(np.isfinite(cost[best]) and cost[best] < start_cost)
-    ok = ok and bool(np.isfinite(R_best).all() and np.isfinite(t_best).all())
-    if not ok:
-        return FitResult(R_init, t_init, start_cost, start_cost, False)
-    U, _, Vt = np.linalg.svd(R_best)
-    R_fit = U @ Vt
-    if s.min_explained > 0 and prob.explained(R_fit, t_best, s.explained_tol_px) < s.min_explained:
-        return FitResult(R_init, t_init, start_cost, start_cost, False)
-    return FitResult(R_fit, t_best, float(cost[best]), start_cost, True)
-
-
-def _start_poses(
-    R_init: F64, t_init: F64, arc: ArcModel, mirror: bool, starts: tuple[tuple[F64, F64], ...]
-) -> tuple[F64, F64]:
-    """The fit's starts (b, 3, 3), (b, 3) mm: the network's pose, its tilt mirror (``mirror``)
-    and ``starts``, each with the network's tip and tail (the data cost hardly tells them
-    apart)."""
-    R_starts = [R_init] + ([mirror_pose(R_init, t_init)] if mirror else [])
-    t_starts = [t_init] * len(R_starts)
-    for R_x, t_x in starts:
-        R_starts.append(np.asarray(R_x, float))
-        t_starts.append(np.asarray(t_x, float))
-    R_starts = [
-        same_ends(R_x, t_x, R_init, t_init, arc)
-        for R_x, t_x in zip(R_starts, t_starts, strict=True)
-    ]
-    return np.stack(R_starts), np.stack(t_starts)
+    pts = None if points is None else [np.asarray(points, float).reshape(-1, 3)]
+    out = refine_poses(
+        np.asarray(R_init, float)[None],
+        np.asarray(t_init, float)[None],
+        K,
+        [evidence],
+        arc,
+        settings,
+        pts,
+        extra,
+        own_priors,
+        depth,
+    )
+    return out.row(0)

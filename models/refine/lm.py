@@ -1,45 +1,59 @@
-"""Levenberg-Marquardt for poses, from several starts in lockstep.
+"""Levenberg-Marquardt for poses, batched: many problems, each from several starts, at once.
 
 Both needle fits use it: the image (and RGB-D) fit of :mod:`.fit`, whose state is a pose
 increment per start with a Gaussian prior on it, and the depth-only fit of :mod:`.depth_fit`,
-whose state is the poses themselves. The objective gives, per start, the robust cost, the
-residuals, their IRLS weights and the Jacobian of the residuals with respect to a step
-(ω, δt) (rad, mm); ``apply`` moves the state by a step. Every start takes a damped
-Gauss-Newton step at once (one batched solve); a step that does not lower its start's cost is
-rejected and that start's damping raised.
+whose state is the poses themselves. A batch row is one start of one problem (one needle);
+``group`` names each row's problem. The objective gives, per row, the robust cost and the
+Gauss-Newton normal equations of its data: the Hessian JᵀWJ and gradient JᵀWr of the IRLS
+weighted residuals with respect to a step (ω, δt) (rad, mm) (:func:`normal_equations`,
+summed per term by the caller, so that the residuals, padded to one count per batch with
+zero weights, are never concatenated or copied between steps); ``apply`` moves the state by
+a step. Every row takes a damped Gauss-Newton step at once (one batched solve); a step that
+does not lower its row's cost is rejected and that row's damping raised. A problem stops (its
+rows stop changing) once all its starts have converged at the same step; the batch stops
+when every problem has.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import TypeVar
 
-import numpy as np
-from numpy.typing import NDArray
+import torch
+from torch import Tensor
 
-F64 = NDArray[np.float64]
-State = TypeVar("State", F64, tuple[F64, ...])
+State = TypeVar("State", Tensor, tuple[Tensor, ...])
 
-#: (cost (B,), residuals (B, M), IRLS weights (B, M), Jacobian (B, M, 6)) of a state.
-Evaluation = tuple[F64, F64, F64, F64]
+#: (cost (B,), Hessian JᵀWJ (B, 6, 6), gradient JᵀWr (B, 6)) of a state.
+Evaluation = tuple[Tensor, Tensor, Tensor]
+
+
+def normal_equations(r: Tensor, w: Tensor, J: Tensor) -> tuple[Tensor, Tensor]:  # noqa: N803
+    """JᵀWJ (B, 6, 6) and JᵀWr (B, 6) of residuals ``r`` (B, M), IRLS weights ``w`` (B, M)
+    and Jacobian ``J`` (B, M, 6)."""
+    JtW = J.transpose(1, 2) * w[:, None, :]
+    return JtW @ J, (JtW @ r[..., None])[..., 0]
 
 
 def levenberg_marquardt(
     objective: Callable[[State], Evaluation],
     state: State,
-    apply: Callable[[State, F64], State],
+    apply: Callable[[State, Tensor], State],
     iterations: int,
     lambda0: float,
     *,
-    prior: Callable[[State], tuple[F64, F64]] | None = None,
+    prior: Callable[[State], tuple[Tensor, Tensor]] | None = None,
     floor: float = 0.0,
     rtol: float | None = 1e-6,
-) -> tuple[State, F64]:
-    """Minimise ``objective`` from ``state`` (B starts); returns (state, cost (B,)).
+    group: Tensor | None = None,
+    first: Evaluation | None = None,
+) -> tuple[State, Tensor]:
+    """Minimise ``objective`` from ``state`` (B rows); returns (state, cost (B,)).
 
     Args:
         objective: The state's :data:`Evaluation`; its cost includes the prior's, if any.
-        state: (B, ...) array, or a tuple of them, one row per start.
+        state: (B, ...) tensor, or a tuple of them, one row per start.
         apply: The state moved by steps (B, 6).
         iterations: At most this many steps.
         lambda0: The damping at the start (× the Hessian's diagonal; × 0.3 after a step
@@ -48,47 +62,76 @@ def levenberg_marquardt(
             the data's.
         floor: Added to the diagonal before the damping scales it, so that a Hessian
             singular in some direction (points on a line, no prior) still gives a step.
-        rtol: Stop when every start's last accepted step lowered its cost by less than this
-            share, or its damping reached 1 after a rejected one; None: run every iteration.
+        rtol: A problem stops when each of its starts' last accepted step lowered its cost by
+            less than this share, or its damping reached 1 after a rejected one; None: run
+            every iteration.
+        group: (B,) int64 problem index of each row (default: one problem).
+        first: The objective at ``state``, where the caller has it already.
     """
-    lam = np.full(len(_rows(state)[0]), lambda0)
-    cost, r, w, J = objective(state)
+    rows = _rows(state)[0]
+    lam = torch.full((len(rows),), lambda0, dtype=rows.dtype, device=rows.device)
+    if group is None:
+        group = torch.zeros(len(rows), dtype=torch.int64, device=rows.device)
+    frozen = torch.zeros(len(rows), dtype=torch.bool, device=rows.device)
+    eye = torch.eye(6, dtype=rows.dtype, device=rows.device)
+    cost, H_data, g_data = first if first is not None else objective(state)
     for _ in range(iterations):
-        JtW = J.transpose(0, 2, 1) * w[:, None, :]
-        H = JtW @ J
-        grad = (JtW @ r[..., None])[..., 0]
+        H, grad = H_data, g_data
         if prior is not None:
             prior_H, prior_grad = prior(state)
             H, grad = H + prior_H, grad + prior_grad
-        diag = np.einsum("bii->bi", H)
-        A = H + (lam[:, None] * (diag + floor))[..., None] * np.eye(6)
-        moved = apply(state, -np.linalg.solve(A, grad[..., None])[..., 0])
-        c_new, r_new, w_new, J_new = objective(moved)
-        better = np.isfinite(c_new) & (c_new < cost)
+        diag = H.diagonal(dim1=-2, dim2=-1)
+        A = H + (lam[:, None] * (diag + floor))[..., None] * eye
+        moved = apply(state, -torch.linalg.solve(A, grad[..., None])[..., 0])
+        c_new, H_new, g_new = objective(moved)
+        better = torch.isfinite(c_new) & (c_new < cost) & ~frozen
         cost_before = cost
         state = _where(better, moved, state)
-        cost = np.where(better, c_new, cost)
-        r = np.where(better[:, None], r_new, r)
-        w = np.where(better[:, None], w_new, w)
-        J = np.where(better[:, None, None], J_new, J)
+        cost = torch.where(better, c_new, cost)
+        H_data = torch.where(better[:, None, None], H_new, H_data)
+        g_data = torch.where(better[:, None], g_new, g_data)
         lam_before = lam
-        lam = np.where(better, lam * 0.3, lam * 10.0)
+        lam = torch.where(frozen, lam, torch.where(better, lam * 0.3, lam * 10.0))
         if rtol is None:
             continue
-        converged = np.where(better, cost_before - cost < rtol * cost_before, lam_before >= 1.0)
-        if converged.all():  # every start stopped moving: the rest would be rejected steps
+        converged = torch.where(better, cost_before - cost < rtol * cost_before, lam_before >= 1.0)
+        frozen = frozen | _all_in_group(converged | frozen, group)
+        if bool(frozen.all()):  # every problem stopped moving: the rest would be rejected
             break
     return state, cost
 
 
-def _rows(state: F64 | tuple[F64, ...]) -> tuple[F64, ...]:
+@contextmanager
+def fit_threads(device: torch.device) -> Iterator[None]:
+    """On the CPU, one intra-op thread while a fit runs: its tensors are small (thousands of
+    elements), so handing each op to a second thread costs more than it saves, and far more
+    when other processes hold the cores. Restores the thread count after."""
+    if device.type != "cpu":
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _all_in_group(flag: Tensor, group: Tensor) -> Tensor:
+    """(B,) whether ``flag`` holds for every row of each row's group."""
+    missing = torch.zeros(int(group.max()) + 1, dtype=torch.int64, device=flag.device)
+    missing.index_add_(0, group, (~flag).to(torch.int64))
+    return missing[group] == 0
+
+
+def _rows(state: Tensor | tuple[Tensor, ...]) -> tuple[Tensor, ...]:
     return state if isinstance(state, tuple) else (state,)
 
 
-def _where(take: NDArray[np.bool_], new: State, old: State) -> State:
+def _where(take: Tensor, new: State, old: State) -> State:
     """``new``'s rows where ``take`` (B,), else ``old``'s."""
     out = tuple(
-        np.where(take.reshape(-1, *([1] * (a.ndim - 1))), a, b)
+        torch.where(take.reshape(-1, *([1] * (a.ndim - 1))), a, b)
         for a, b in zip(_rows(new), _rows(old), strict=True)
     )
     return out if isinstance(new, tuple) else out[0]

@@ -2,14 +2,15 @@
 
 Per ROI: the segmenter (:mod:`.seghead`) predicts the needle's masks on a square grid of
 about one image px around the detection (the visible one, and the full, amodal one when it
-predicts it), and :func:`.fit.refine_pose` fits the exact arc to them (the wire explains the
+predicts it), and :func:`.fit.refine_poses` fits the exact arc to them (the wire explains the
 visible pixels, the arc lies on the full mask), starting from the pose head's estimate; a fit
-that does not lower its own cost keeps the pose head's pose.
+that does not lower its own cost keeps the pose head's pose. The masks' evidence is prepared
+per ROI (cv2), then every ROI of a call is fitted at once, on the refiner's device.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -25,10 +26,10 @@ from bopsurg.models.checkpoint import load_checkpoint, load_weights
 from bopsurg.models.pose.roi import crop
 from bopsurg.models.predict_config import DepthSettings, FitSettings
 from bopsurg.models.refine.arc import ArcModel
-from bopsurg.models.refine.depth_fit import fit_depth
-from bopsurg.models.refine.fit import Evidence, FitResult, refine_pose
+from bopsurg.models.refine.depth_fit import fit_depths
+from bopsurg.models.refine.fit import Evidence, FitResults, Starts, refine_poses
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
-from bopsurg.models.refine.wire3d import depth_points, wire_distances
+from bopsurg.models.refine.wire3d import depth_points, stack_points, wire_distances
 
 #: The fit's evidence from a segmenter: ``full`` (the default when the segmenter predicts the
 #: full, amodal mask: the arc may lie on the full mask, the pixels it must explain are the
@@ -197,6 +198,7 @@ class NeedleRefiner:
         whole: frame the box grown to hold the start pose's whole projected arc (a segmenter
             trained with :attr:`SegConfig.frame` ``"whole"``), so that the evidence covers
             the part of a needle hidden in tissue.
+        device: where the fits run (the segmenter's, from :meth:`for_segmenter`).
     """
 
     def __init__(
@@ -208,9 +210,11 @@ class NeedleRefiner:
         fit: FitSettings | None = None,
         depth: DepthSettings | None = None,
         whole: bool = False,
+        device: torch.device | str = "cpu",
     ) -> None:
         self.evidence, self.arc, self.grid, self.pad = evidence, arc, grid, pad
         self.whole = whole
+        self.device = torch.device(device)
         self.settings = fit or FitSettings()
         self.depth = depth or DepthSettings()
 
@@ -218,8 +222,9 @@ class NeedleRefiner:
     def for_segmenter(
         cls, seg: Segmenter, fit: FitSettings | None = None, depth: DepthSettings | None = None
     ) -> NeedleRefiner:
-        """A refiner on a loaded segmenter: its arc, ROI size, padding and framing."""
-        return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, fit, depth, seg.cfg.frame == "whole")
+        """A refiner on a loaded segmenter: its arc, ROI size, padding, framing and device."""
+        whole = seg.cfg.frame == "whole"
+        return cls(seg, seg.arc, seg.cfg.roi, seg.cfg.pad, fit, depth, whole, seg.device)
 
     def grids(self, box_xywh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Grid centre (n, 2) px and side (n,) px of boxes (x, y, w, h) in pixel-centre px."""
@@ -254,36 +259,46 @@ class NeedleRefiner:
         K: np.ndarray,
         R: np.ndarray,
         t: np.ndarray,
-        depth: np.ndarray | None = None,
+        depth: np.ndarray | Sequence[np.ndarray | None] | None = None,
     ) -> Refined:
         """Poses (R (n, 3, 3), t (n, 3) mm) fitted to ``masks`` from the pose head's, which
-        ROIs changed and which came from the fit without the network's prior (:class:`Refined`).
+        ROIs changed and which came from the fit without the network's prior (:class:`Refined`),
+        all ROIs at once on the refiner's device.
 
-        With a ``depth`` image (H, W) mm (0: no reading), RGB-D: the visible mask's pixels
-        back-projected are the fit's points (its depth term), the arc fitted to those points
-        alone (:func:`.depth_fit.fit_depth`) is one more start, and with
-        :attr:`DepthSettings.unheld` the fit is also run without the network's prior
-        (:meth:`_unheld`)."""
-        R_out, t_out = R.copy(), t.copy()
-        changed = np.zeros(len(R), dtype=bool)
-        unheld = np.zeros(len(R), dtype=bool)
-        s = self.settings
-        for i in range(len(R)):  # one small least-squares problem per ROI
+        ``K``: (3, 3) intrinsics, px, or (n, 3, 3) one per ROI. ``depth``: None (RGB), one depth
+        image (H, W) mm (0: no reading) for all ROIs, or a sequence of n entries, each a depth
+        image or None (RGB for that ROI). RGB-D: the visible mask's pixels back-projected are
+        the fit's points (its depth term), the arc fitted to those points alone
+        (:func:`.depth_fit.fit_depths`) is one more start, and with :attr:`DepthSettings.unheld`
+        the fit is also run without the network's prior (:meth:`_unheld`)."""
+        n, s = len(R), self.settings
+        Ks = np.broadcast_to(np.asarray(K, float), (n, 3, 3))
+        depths = _per_roi(depth, n)
+        evidence, points = [], []
+        for i in range(n):  # preparation, once per ROI: distance transforms, back-projection
             ev, visible = self._evidence(masks, i)
-            points: np.ndarray | None = None
-            starts: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
-            if depth is not None:
+            evidence.append(ev)
+            d = depths[i]
+            if d is not None:
                 rows, cols = np.nonzero(visible)
-                points = depth_points(ev.origin + ev.step * np.stack([cols, rows], 1), depth, K)
-                alone = fit_depth(R[i], t[i], points, self.arc, self.depth.points)
-                points = points if len(points) >= s.min_evidence else None
-                starts = ((alone.R, alone.t),) if alone.used else ()
-            res = refine_pose(R[i], t[i], K, ev, self.arc, s, points, starts, depth=self.depth)
-            if points is not None and self.depth.unheld:
-                free = self._unheld(res, R[i], t[i], K, ev, points, starts)
-                res, unheld[i] = free or res, free is not None
-            R_out[i], t_out[i], changed[i] = res.R, res.t, res.improved
-        return Refined(R_out, t_out, changed, unheld)
+                uv = ev.origin + ev.step * np.stack([cols, rows], 1)
+                points.append(depth_points(uv, d, Ks[i]))
+            else:
+                points.append(None)
+        with_depth = np.array([p is not None for p in points], bool)
+        has = np.flatnonzero(with_depth)
+        alone = fit_depths(
+            R[has], t[has], [points[i] for i in has], self.arc, self.depth.points, self.device
+        )
+        starts = Starts(alone.R[alone.used], alone.t[alone.used], has[alone.used])
+        fitted = [p if p is not None and len(p) >= s.min_evidence else None for p in points]
+        res = refine_poses(
+            R, t, Ks, evidence, self.arc, s, fitted, starts, depth=self.depth, device=self.device
+        )
+        unheld = np.zeros(n, dtype=bool)
+        if self.depth.unheld:
+            res, unheld = self._unheld(res, R, t, Ks, evidence, fitted, starts)
+        return Refined(res.R, res.t, res.improved, unheld)
 
     def _evidence(self, masks: RoiMasks, i: int) -> tuple[Evidence, np.ndarray]:
         """ROI ``i``'s evidence for the fit, and its visible mask (on the evidence's grid)."""
@@ -298,35 +313,59 @@ class NeedleRefiner:
 
     def _unheld(
         self,
-        res: FitResult,
+        res: FitResults,
         R: np.ndarray,
         t: np.ndarray,
         K: np.ndarray,
-        ev: Evidence,
-        points: np.ndarray,
-        starts: tuple[tuple[np.ndarray, np.ndarray], ...],
-    ) -> FitResult | None:
-        """The fit without the network's prior where it puts clearly more points on its wire
-        than the held RGB-D fit ``res`` (:attr:`DepthSettings.unheld_share`; less where
-        the network's pose ``R``, ``t`` is lost: :attr:`DepthSettings.lost_share`), else
-        None."""
+        evidence: list[Evidence],
+        points: list[np.ndarray | None],
+        starts: Starts,
+    ) -> tuple[FitResults, np.ndarray]:
+        """``res`` with the fit without the network's prior where it puts clearly more points
+        on its wire than the held RGB-D fit (:attr:`DepthSettings.unheld_share`; less where
+        the network's pose ``R``, ``t`` is lost: :attr:`DepthSettings.lost_share`), and
+        which ROIs took it. Only ROIs with points are tried, all at once."""
         d = self.depth
+        unheld = np.zeros(len(R), dtype=bool)
+        has = np.flatnonzero([p is not None for p in points])
+        if not len(has):
+            return res, unheld
 
-        def on_wire(R_: np.ndarray, t_: np.ndarray, tol: float) -> float:
-            dist = wire_distances(R_[None], t_[None], points, self.arc)[0]
-            return float((np.abs(dist) <= tol).mean())
+        def on_wire(rows: np.ndarray, R_: np.ndarray, t_: np.ndarray, tol: float) -> np.ndarray:
+            """Share of the points of ROIs ``rows`` within ``tol`` mm of the poses' wires."""
+            P, real = stack_points([points[i] for i in rows], self.device)
+            R_t, t_t = (torch.as_tensor(a, device=self.device) for a in (R_, t_))
+            near = wire_distances(R_t, t_t, P, self.arc).abs() <= tol
+            return np.asarray(((near & real).sum(-1) / real.sum(-1)).cpu().numpy(), float)
 
-        lost = d.lost_share > 0 and on_wire(R, t, d.lost_mm) < d.lost_share
-        lead = d.unheld_share_lost if lost else d.unheld_share
-        held = on_wire(res.R, res.t, d.inlier_mm)
-        if held + lead > 1.0:  # no fit can put that many more on its wire
-            return None
-        free = refine_pose(
-            R, t, K, ev, self.arc, self.settings, points, starts, own_priors=True, depth=d
+        lost = (d.lost_share > 0) & (on_wire(has, R[has], t[has], d.lost_mm) < d.lost_share)
+        lead = np.where(lost, d.unheld_share_lost, d.unheld_share)
+        need = on_wire(has, res.R[has], res.t[has], d.inlier_mm) + lead
+        tried = need <= 1.0  # else no fit can put that many more on its wire
+        rows, need = has[tried], need[tried]
+        if not len(rows):
+            return res, unheld
+        pick = np.isin(starts.roi, rows)
+        sub = Starts(starts.R[pick], starts.t[pick], np.searchsorted(rows, starts.roi[pick]))
+        free = refine_poses(
+            R[rows],
+            t[rows],
+            K[rows],
+            [evidence[i] for i in rows],
+            self.arc,
+            self.settings,
+            [points[i] for i in rows],
+            sub,
+            own_priors=True,
+            depth=d,
+            device=self.device,
         )
-        if free.improved and on_wire(free.R, free.t, d.inlier_mm) >= held + lead:
-            return free
-        return None
+        take = free.improved & (on_wire(rows, free.R, free.t, d.inlier_mm) >= need)
+        out = FitResults(*(a.copy() for a in res))
+        for field, value in zip(out, free, strict=True):
+            field[rows[take]] = value[take]
+        unheld[rows[take]] = True
+        return out, unheld
 
     def __call__(
         self,
@@ -348,3 +387,17 @@ class NeedleRefiner:
             depth: (H, W) depth image, mm, or None (RGB only).
         """
         return self.fit(self.observe(image, K, box_xywh, R, t), K, R, t, depth)
+
+
+def _per_roi(
+    depth: np.ndarray | Sequence[np.ndarray | None] | None, n: int
+) -> list[np.ndarray | None]:
+    """The depth image of each of n ROIs (None: RGB) from :meth:`NeedleRefiner.fit`'s
+    ``depth`` (one (H, W) image for all, or one entry per ROI, e.g. an (n, H, W) stack)."""
+    if depth is None:
+        return [None] * n
+    if isinstance(depth, np.ndarray) and depth.ndim == 2:
+        return [depth] * n
+    if len(depth) != n:
+        raise ValueError(f"depth: {len(depth)} entries for {n} ROIs")
+    return list(depth)

@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bopsurg import metrics
-from bopsurg.models.predict_config import PointsFitSettings
-from bopsurg.models.refine.arc import ArcModel, half_turn
-from bopsurg.models.refine.depth_fit import fit_depth
-from bopsurg.models.refine.wire3d import depth_points, nearest_arc_points, wire_distances
+torch = pytest.importorskip("torch")
+
+from bopsurg import metrics  # noqa: E402
+from bopsurg.models.predict_config import PointsFitSettings  # noqa: E402
+from bopsurg.models.refine.arc import ArcModel, half_turn  # noqa: E402
+from bopsurg.models.refine.depth_fit import fit_depth  # noqa: E402
+from bopsurg.models.refine.wire3d import depth_points, nearest_arc_points, wire_distances  # noqa: E402
 
 ARC = ArcModel()
 K = np.array([[350.807, 0.0, 320.0], [0.0, 350.807, 240.0], [0.0, 0.0, 1.0]])
@@ -55,7 +57,7 @@ def test_nearest_arc_points_clamp_to_the_nearer_end():
             [5 * np.cos(-0.2), 5 * np.sin(-0.2), 0.0],  # just before the tail
         ]
     )
-    c = nearest_arc_points(q, ARC)
+    c = nearest_arc_points(torch.as_tensor(q), ARC).numpy()
     r = ARC.radius
     np.testing.assert_allclose(c[0], [r * np.cos(a / 2), r * np.sin(a / 2), 0], atol=1e-12)
     np.testing.assert_allclose(c[1], [r * np.cos(a), r * np.sin(a), 0], atol=1e-12)
@@ -65,7 +67,8 @@ def test_nearest_arc_points_clamp_to_the_nearer_end():
 def test_surface_points_lie_on_the_wire_at_the_true_pose():
     rng = np.random.default_rng(0)
     R, t = Rotation.random(random_state=1).as_matrix(), np.array([2.0, -3.0, 60.0])
-    d = wire_distances(R[None], t[None], wire_surface(R, t, rng), ARC)
+    P = torch.as_tensor(wire_surface(R, t, rng))[None]
+    d = wire_distances(torch.as_tensor(R)[None], torch.as_tensor(t)[None], P, ARC).numpy()
     assert np.abs(d).max() < 1e-9
 
 

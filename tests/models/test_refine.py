@@ -35,10 +35,11 @@ from bopsurg.models.refine import (  # noqa: E402
     Segmenter,
     refine_pose,
 )
-from bopsurg.models.refine.arc import _exp_so3, mirror_pose  # noqa: E402
+from bopsurg.models.refine.arc import mirror_pose  # noqa: E402
 from bopsurg.models.refine.refiner import upsampled  # noqa: E402
 from bopsurg.models.stages.head import HeadPoses  # noqa: E402
 from bopsurg.models.stages.refine import RefineStage, grown_boxes  # noqa: E402
+from tests.models.refine_scene import rot as _exp_so3  # noqa: E402
 from tests.models.test_depth_fit import tilt_mirror, wire_surface  # noqa: E402
 
 K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
@@ -154,12 +155,15 @@ def test_the_wire_tube_removes_the_edge_on_depth_bias(view_deg):
 def test_the_tube_matches_the_rendered_wire_width():
     # at the true pose the tube's sides lie on the silhouette's outline: the side residuals
     # (signed px, sub-pixel by the outline's bilinear crossing) centre on 0
-    from bopsurg.models.refine.fit import _Problem
+    from bopsurg.models.refine.fit import EvidenceBatch, _Problem
 
     R, t = _pose(60.0, 20.0, (2.0, -3.0, 90.0))
     ev = _evidence(R, t)
     settings = GENERIC
-    _, r, _, _ = _Problem(ARC, ev, K, settings).evaluate(R[None], t[None], True)
+    batch = EvidenceBatch.stack([ev], torch.device("cpu"))
+    prob = _Problem(ARC, batch, torch.as_tensor(K)[None], settings, torch.tensor([0]))
+    *_, r = prob.evaluate(torch.as_tensor(R)[None], torch.as_tensor(t)[None])
+    r = r.numpy()
     sides = r[0, ev.size + settings.samples :]
     assert abs(np.median(sides)) < 0.35
 
@@ -226,7 +230,7 @@ def test_noise_evidence_never_gives_nan(seed):
 
 def test_the_mirror_start_keeps_the_projected_circle():
     R, t = _pose(40.0, 10.0, (0.0, 0.0, 80.0))  # line of sight = optical axis
-    Rm = mirror_pose(R, t)
+    Rm = mirror_pose(torch.as_tensor(R), torch.as_tensor(t)).numpy()
     v = t / np.linalg.norm(t)
     assert np.dot(Rm[:, 2], v) == pytest.approx(np.dot(R[:, 2], v))  # same tilt, mirrored
     assert metrics.re(Rm[None], R[None])[0] == pytest.approx(2 * 50.0, abs=1e-6)
