@@ -9,7 +9,7 @@ that does not lower its own cost keeps the pose head's pose.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -254,7 +254,7 @@ class NeedleRefiner:
         K: np.ndarray,
         R: np.ndarray,
         t: np.ndarray,
-        depth: np.ndarray | None = None,
+        depth: np.ndarray | Sequence[np.ndarray | None] | None = None,
     ) -> Refined:
         """Poses (R (n, 3, 3), t (n, 3) mm) fitted to ``masks`` from the pose head's, which
         ROIs changed and which came from the fit without the network's prior (:class:`Refined`).
@@ -263,12 +263,16 @@ class NeedleRefiner:
         back-projected are the fit's points (its depth term), the arc fitted to those points
         alone (:func:`.depth_fit.fit_depth`) is one more start, and with
         :attr:`DepthSettings.unheld` the fit is also run without the network's prior
-        (:meth:`_unheld`)."""
+        (:meth:`_unheld`). ``K`` (3, 3) px, or (n, 3, 3) per ROI; ``depth`` one image, or a
+        sequence of n (an image or None per ROI)."""
+        Ks = np.broadcast_to(np.asarray(K, float), (len(R), 3, 3))
+        depths = [depth] * len(R) if depth is None or isinstance(depth, np.ndarray) else depth
         R_out, t_out = R.copy(), t.copy()
         changed = np.zeros(len(R), dtype=bool)
         unheld = np.zeros(len(R), dtype=bool)
         s = self.settings
         for i in range(len(R)):  # one small least-squares problem per ROI
+            K, depth = Ks[i], depths[i]
             ev, visible = self._evidence(masks, i)
             points: np.ndarray | None = None
             starts: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
