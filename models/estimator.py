@@ -166,7 +166,7 @@ class GdrNetEstimator:
         R, t = self.head(image, K_t, box_xywh, index_t)
         if self.head.obj_id == NEEDLE_OBJ_ID:
             depth = [images[i].depth for i in index.tolist()] if self.uses_depth else None
-            batch = _Batch(image, K, K_t, index, box_xywh)
+            batch = _Batch(image, K, K_t, index, index_t, box_xywh)
             R, t = self._needle_stages(batch, HeadPoses(R, t), depth, bbox)
         ends = np.cumsum(counts)[:-1]
         return [
@@ -194,7 +194,7 @@ class GdrNetEstimator:
                 batch.box_xywh,
                 poses,
                 head=lambda g, rows: self.head(
-                    batch.image, batch.K_t[rows], g, torch.as_tensor(batch.roi_image[rows])
+                    batch.image, batch.K_t[rows], g, batch.index_t[rows]
                 ),
                 depth=depth,
                 index=batch.roi_image,
@@ -214,8 +214,9 @@ class _Batch(NamedTuple):
     #: (n, 3, 3) each ROI's intrinsics, px (float64, and float32 on the device).
     K: np.ndarray
     K_t: torch.Tensor
-    #: (n,) each ROI's image in ``image``.
+    #: (n,) each ROI's image in ``image`` (and on the device).
     roi_image: np.ndarray
+    index_t: torch.Tensor
     #: (n, 4) boxes (x, y, w, h), pixel-centre px.
     box_xywh: torch.Tensor
 
