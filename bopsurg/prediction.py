@@ -304,6 +304,18 @@ def _decoded_batches(
             yield batch, images
 
 
+def _predict_batch(
+    estimator: _Mapped, keys: list[ImageKey], images: list[ImageInput]
+) -> tuple[list[str], float]:
+    """A batch's result, detection and ``# done`` lines, and its time per image (s)."""
+    t0 = time.perf_counter()
+    preds = estimator.predict_batch(images)
+    secs = (time.perf_counter() - t0) / len(keys)  # the batch's time, shared by its images
+    return [
+        ln for key, p in zip(keys, preds, strict=True) for ln in _image_lines(key, p, secs)
+    ], secs
+
+
 def predict_dataset(
     dataset: BopDataset,
     estimator: PoseEstimator,
@@ -369,12 +381,7 @@ def predict_dataset(
         fh.flush()
         batches = _batches([k for k in keys if k not in done], batch_size)
         for batch, images in _decoded_batches(batches, load):
-            t0 = time.perf_counter()
-            preds = mapped.predict_batch(images)
-            secs = (time.perf_counter() - t0) / len(batch)  # the batch's time, shared
-            chunk = [
-                ln for key, p in zip(batch, preds, strict=True) for ln in _image_lines(key, p, secs)
-            ]
+            chunk, secs = _predict_batch(mapped, batch, images)
             depth_images += sum(im.depth is not None for im in images)
             done.update(dict.fromkeys(batch, secs))
             fh.write("".join(c + "\n" for c in chunk))
