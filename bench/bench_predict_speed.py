@@ -49,8 +49,10 @@ def time_per_image(
     est = load_estimator("gdrnet", {"device": device, **options})
     csv = out / f"{config.replace(' ', '_')}_{batch}.csv"
     csv.unlink(missing_ok=True)
+    # batch 1 without the keyword: the bench also times a bopsurg from before --batch-size
+    batching = {} if batch == 1 else {"batch_size": batch}
     predict_dataset(
-        ds, est, csv, max_images=warmup + images, progress=False, depth=depth, batch_size=batch
+        ds, est, csv, max_images=warmup + images, progress=False, depth=depth, **batching
     )
     res = load_results(csv)
     seen: dict[tuple[int, int], float] = {}
