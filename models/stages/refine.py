@@ -132,7 +132,7 @@ class RefineStage:
             index: (n,) the image of each ROI (None: all in image 0).
         """
         n = len(box_xywh)
-        K = np.broadcast_to(np.asarray(K, float), (n, 3, 3))
+        K = np.broadcast_to(np.asarray(K, float), (n, 3, 3)).copy()  # writable, per ROI
         index = np.zeros(n, dtype=np.int64) if index is None else np.asarray(index)
         masks = self._observe(image, K, box_xywh, poses.R, poses.t, index)
         boxes = box_xywh.detach().cpu().double().numpy()
