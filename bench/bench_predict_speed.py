@@ -15,6 +15,9 @@ trust, since the three ran back to back under the same load. Prints ms per image
 ratio of each to the networks alone, and the machine.
 
     python bench/bench_predict_speed.py /work/exp/s38/testsplit --images 60 --batch-size 1 8
+
+``--threads 1`` on a machine shared with other jobs: torch's threads wait for each other
+there, and the times say more about the load than about the code.
 """
 
 from __future__ import annotations
@@ -74,7 +77,10 @@ def main() -> None:
                     "to whole batches)")  # fmt: skip
     ap.add_argument("--rounds", type=int, default=1)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     args = ap.parse_args()
+    if args.threads is not None:  # one thread: a machine shared with other jobs times fairly
+        torch.set_num_threads(args.threads)
     ds = BopDataset(args.dataset, args.split)
     print(f"machine: {machine()}; torch {torch.__version__}, {torch.get_num_threads()} threads")
     with tempfile.TemporaryDirectory() as tmp:
