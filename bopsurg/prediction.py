@@ -334,9 +334,8 @@ def predict_dataset(
         dataset: The split to run on.
         estimator: Any :class:`~bopsurg.estimation.PoseEstimator`.
         out: Results CSV (BOP19: ``scene_id,im_id,obj_id,score,R,t,time``).
-        boxes: External 2D boxes per image (see :mod:`bopsurg.bop.detections`); images
-            without an entry get no boxes (an empty Detections), so the estimator returns
-            nothing there.
+        boxes: External 2D boxes per image (see :mod:`bopsurg.bop.detections`); an image
+            without an entry gets an empty Detections (so no estimates).
         detections_out: Also write the 2D box of every estimate as BOP detections JSON.
         max_images: Stop after this many images (a quick look); None = all.
         progress: Show a progress bar.
@@ -348,8 +347,8 @@ def predict_dataset(
 
     Raises:
         BopsurgError: ``batch_size`` < 1, the estimator returned something that is not a
-            PosePredictions, its
-            models cannot be matched to the dataset's, or a bad image / dataset file (named).
+            PosePredictions, its models cannot be matched to the dataset's, or a bad image /
+            dataset file (named).
     """
     if batch_size < 1:
         raise BopsurgError(f"batch size must be >= 1, got {batch_size}")
