@@ -357,8 +357,7 @@ def predict_dataset(
         log.info("%s", mapping.describe())
     use_depth = depth and estimator_uses_depth(estimator)
     mapped = _Mapped(estimator, mappings, use_depth)
-    divisor = depth_divisor(mappings) if use_depth else None
-    depth_images = 0
+    divisor, depth_images = (depth_divisor(mappings) if use_depth else None), 0
     out = Path(out)
     partial = out.with_name(out.name + ".partial")
     lines, done = _read_partial(partial)
