@@ -229,7 +229,7 @@ def stage_poses(args, st: Setup, scene, i: int, rgb, K, pred, ms) -> dict:
         if st.mapping is not None:
             R0, t0 = st.mapping.unmap_poses(R0, t0)
     # re-crops re-run the pose head (not from a GT start)
-    head = None if args.from_gt else (lambda g: st.est.head(image, K_t, g))
+    head = None if args.from_gt else (lambda g, _rows: st.est.head(image, K_t, g))
     out = {}
     for name, stage in st.stages.items():
         if name == "oracle":

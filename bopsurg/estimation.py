@@ -19,7 +19,7 @@ detections JSON to ``bopsurg predict --boxes``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -37,11 +37,13 @@ I64 = NDArray[np.int64]
 __all__ = [
     "Detections",
     "EstimatorFactory",
+    "ImageInput",
     "PoseEstimator",
     "PosePredictions",
     "estimator_report",
     "estimator_uses_depth",
     "load_estimator",
+    "predict_images",
 ]
 
 
@@ -95,8 +97,11 @@ class PoseEstimator(Protocol):
 
     Optional: ``object_models`` (obj_id → the :class:`~bopsurg.bop.meshes.ObjectModel` its
     poses refer to, see :func:`estimator_models`), ``report()`` (see
-    :func:`estimator_report`) and ``uses_depth`` (True: :meth:`predict` also takes
-    ``depth=``, see :func:`estimator_uses_depth`).
+    :func:`estimator_report`), ``uses_depth`` (True: :meth:`predict` also takes
+    ``depth=``, see :func:`estimator_uses_depth`) and ``predict_batch(images)`` (a sequence
+    of :class:`ImageInput` -> one :class:`PosePredictions` per image, each the same as
+    :meth:`predict` gives for that image; see :func:`predict_images`, which loops over
+    :meth:`predict` for an estimator without it).
     """
 
     #: Object ids the estimator can find.
@@ -122,6 +127,61 @@ class PoseEstimator(Protocol):
             The estimates, any number per object, best first within an object.
         """
         ...
+
+
+@dataclass(frozen=True, eq=False)
+class ImageInput:
+    """One image for :func:`predict_images` (the arguments of :meth:`PoseEstimator.predict`).
+
+    Attributes:
+        rgb: (H, W, 3) uint8 RGB image.
+        K: (3, 3) camera matrix, px.
+        obj_ids: Only look for these objects; None = all the estimator knows.
+        boxes: 2D boxes from an external detector; None = detect.
+        depth: (H, W) depth, mm (0: no reading), for an estimator that ``uses_depth``; None:
+            no depth image.
+    """
+
+    rgb: NDArray[np.uint8]
+    K: F64
+    obj_ids: tuple[int, ...] | None = None
+    boxes: Detections | None = None
+    depth: F64 | None = None
+
+
+def predict_images(
+    estimator: PoseEstimator, images: Sequence[ImageInput], *, depth: bool | None = None
+) -> list[PosePredictions]:
+    """The estimates of a batch of images, one :class:`PosePredictions` per image, in order.
+
+    Through the estimator's ``predict_batch`` when it has one (it may run its networks on the
+    whole batch at once), else :meth:`PoseEstimator.predict` image by image with ``depth=``
+    when ``depth`` (default: whether the estimator ``uses_depth``; False: an RGB-only run,
+    the keyword is not passed and the images should hold no depth).
+
+    Raises:
+        BopsurgError: ``predict_batch`` returned a different number of results.
+    """
+    batch = getattr(estimator, "predict_batch", None)
+    if callable(batch):
+        out = list(batch(images))
+        if len(out) != len(images):
+            raise BopsurgError(
+                f"estimator's predict_batch returned {len(out)} results for {len(images)} images"
+            )
+        return out
+    if depth is None:
+        depth = estimator_uses_depth(estimator)
+    return [
+        estimator.predict(
+            im.rgb,
+            im.K,
+            obj_ids=im.obj_ids,
+            boxes=im.boxes,
+            **({"depth": im.depth} if depth else {}),
+        )
+        for im in images
+    ]
 
 
 def estimator_models(estimator: object) -> Mapping[int, ObjectModel] | None:

@@ -10,17 +10,20 @@ value × ``depth_scale``; 0 where there is no reading) unless the run is RGB-onl
 poses are mapped into a dataset model k times the size of the estimator's, the depth is
 divided by k: the estimator sees the scene scaled to its own needle, as it sees the image.
 
-Each image is timed from the moment its pixels are in memory to the moment its poses are
-(image decoding excluded, as BOP asks), and the time is written in the CSV's ``time``
-column. Progress is appended to ``RESULTS.partial`` after every image, so a killed run
-resumes where it stopped; the final CSV appears atomically at the end.
+Images go to the estimator in batches (``batch_size``; a thread decodes the next batch
+meanwhile). Each batch is timed from the moment its pixels are in memory to the moment its
+poses are (image decoding excluded, as BOP asks), and each of its images gets the batch's
+time divided by its number of images in the CSV's ``time`` column. Progress is appended to
+``RESULTS.partial`` after every batch, so a killed run resumes where it stopped; the final
+CSV appears atomically at the end.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,10 +44,12 @@ from bopsurg.bop.results import (
 )
 from bopsurg.errors import BopsurgError, ResultsError
 from bopsurg.estimation import (
+    ImageInput,
     PoseEstimator,
     PosePredictions,
     estimator_models,
     estimator_uses_depth,
+    predict_images,
 )
 from bopsurg.model_frames import FrameMapping, map_predictions, model_mapping
 
@@ -234,43 +239,81 @@ def save_run_config(results: str | Path, estimator: str, config: Mapping[str, An
 class _Mapped:
     """An estimator whose poses come mapped into the dataset's model frames."""
 
-    def __init__(self, estimator: PoseEstimator, mappings: Mapping[int, FrameMapping]) -> None:
+    def __init__(
+        self, estimator: PoseEstimator, mappings: Mapping[int, FrameMapping], depth: bool
+    ) -> None:
         self.estimator, self.mappings, self.obj_ids = estimator, mappings, estimator.obj_ids
+        self.depth = depth  # pass depth= (False: an RGB-only run)
 
     def predict(self, rgb: Any, K: Any, **kw: Any) -> PosePredictions:
-        pred = self.estimator.predict(rgb, K, **kw)
-        if not isinstance(pred, PosePredictions):
-            raise BopsurgError(
-                f"estimator returned {type(pred).__name__}, expected PosePredictions"
-            )
-        return map_predictions(pred, self.mappings)
+        return self.predict_batch([ImageInput(rgb, K, **kw)])[0]
+
+    def predict_batch(self, images: Sequence[ImageInput]) -> list[PosePredictions]:
+        out = []
+        for pred in predict_images(self.estimator, images, depth=self.depth):
+            if not isinstance(pred, PosePredictions):
+                raise BopsurgError(
+                    f"estimator returned {type(pred).__name__}, expected PosePredictions"
+                )
+            out.append(map_predictions(pred, self.mappings))
+        return out
 
 
-def _predict_image(
+def _load_image(
     dataset: BopDataset,
-    estimator: PoseEstimator,
     key: ImageKey,
     obj_ids: tuple[int, ...],
     boxes: Detections | None,
     depth_divisor: float | None,
-) -> tuple[list[str], float, bool]:
-    """One image's result and detection lines, the estimator's time on it (s), and whether it
-    was given a depth image (``depth_divisor`` None: RGB only)."""
+) -> ImageInput:
+    """One image decoded, with its camera, targets, boxes and (``depth_divisor`` not None)
+    its depth in mm divided by ``depth_divisor``."""
     scene_id, im_id = key
     scene = dataset.scene(scene_id)
-    rgb = load_rgb(scene.rgb_path(im_id))
-    K = scene.camera[im_id].K
-    extra = {}
-    if depth_divisor is not None:
-        extra["depth"] = _load_depth_mm(scene, im_id, depth_divisor)
-    t0 = time.perf_counter()
-    pred = estimator.predict(rgb, K, obj_ids=obj_ids, boxes=boxes, **extra)
-    secs = time.perf_counter() - t0
+    depth = None if depth_divisor is None else _load_depth_mm(scene, im_id, depth_divisor)
+    return ImageInput(load_rgb(scene.rgb_path(im_id)), scene.camera[im_id].K, obj_ids, boxes, depth)
+
+
+def _image_lines(key: ImageKey, pred: PosePredictions, secs: float) -> list[str]:
+    """An image's result and detection lines, then its ``# done`` marker."""
     chunk = []
     for k in range(len(pred)):
-        chunk.append(_format_row(scene_id, im_id, pred, k, secs))
-        chunk.append(_bbox_line(scene_id, im_id, pred, k))
-    return chunk, secs, extra.get("depth") is not None
+        chunk.append(_format_row(key[0], key[1], pred, k, secs))
+        chunk.append(_bbox_line(key[0], key[1], pred, k))
+    return [*chunk, f"# done {key[0]},{key[1]},{secs}"]
+
+
+def _batches(keys: list[ImageKey], size: int) -> list[list[ImageKey]]:
+    return [keys[i : i + size] for i in range(0, len(keys), size)]
+
+
+def _load_all(load: Callable[[ImageKey], ImageInput], keys: list[ImageKey]) -> list[ImageInput]:
+    return [load(k) for k in keys]
+
+
+def _decoded_batches(
+    batches: list[list[ImageKey]], load: Callable[[ImageKey], ImageInput]
+) -> Iterator[tuple[list[ImageKey], list[ImageInput]]]:
+    """Each batch with its images decoded; a thread decodes the next batch while the caller
+    works on this one (decoding is not part of an image's time, and overlaps with it)."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode") as pool:
+        ahead = [pool.submit(_load_all, load, b) for b in batches[:1]]
+        for i, batch in enumerate(batches):
+            images = ahead.pop().result()
+            ahead += [pool.submit(_load_all, load, b) for b in batches[i + 1 : i + 2]]
+            yield batch, images
+
+
+def _predict_batch(
+    estimator: _Mapped, keys: list[ImageKey], images: list[ImageInput]
+) -> tuple[list[str], float]:
+    """A batch's result, detection and ``# done`` lines, and its time per image (s)."""
+    t0 = time.perf_counter()
+    preds = estimator.predict_batch(images)
+    secs = (time.perf_counter() - t0) / len(keys)  # the batch's time, shared by its images
+    return [
+        ln for key, p in zip(keys, preds, strict=True) for ln in _image_lines(key, p, secs)
+    ], secs
 
 
 def predict_dataset(
@@ -283,6 +326,7 @@ def predict_dataset(
     max_images: int | None = None,
     progress: bool = True,
     depth: bool = True,
+    batch_size: int = 1,
 ) -> PredictionRun:
     """Estimate poses in every target image of ``dataset`` and write the results CSV.
 
@@ -290,53 +334,58 @@ def predict_dataset(
         dataset: The split to run on.
         estimator: Any :class:`~bopsurg.estimation.PoseEstimator`.
         out: Results CSV (BOP19: ``scene_id,im_id,obj_id,score,R,t,time``).
-        boxes: External 2D boxes per image (see :mod:`bopsurg.bop.detections`); images
-            without an entry get no boxes (an empty Detections), so the estimator returns
-            nothing there.
+        boxes: External 2D boxes per image (see :mod:`bopsurg.bop.detections`); an image
+            without an entry gets an empty Detections (so no estimates).
         detections_out: Also write the 2D box of every estimate as BOP detections JSON.
         max_images: Stop after this many images (a quick look); None = all.
         progress: Show a progress bar.
         depth: Give an estimator that uses depth (``uses_depth``) each image's depth image;
             False: RGB only.
+        batch_size: Images per call of the estimator (``predict_batch``, see
+            :func:`bopsurg.estimation.predict_images`); each image's time is the batch's time
+            divided by its images.
 
     Raises:
-        BopsurgError: The estimator returned something that is not a PosePredictions, its
-            models cannot be matched to the dataset's, or a bad image / dataset file (named).
+        BopsurgError: ``batch_size`` < 1, the estimator returned something that is not a
+            PosePredictions, its models cannot be matched to the dataset's, or a bad image /
+            dataset file (named).
     """
+    if batch_size < 1:
+        raise BopsurgError(f"batch size must be >= 1, got {batch_size}")
     mappings = dataset_mappings(dataset, estimator)
     for mapping in mappings.values():
         log.info("%s", mapping.describe())
     use_depth = depth and estimator_uses_depth(estimator)
-    estimator = _Mapped(estimator, mappings)
-    divisor = depth_divisor(mappings) if use_depth else 1.0
-    depth_images = 0
+    mapped = _Mapped(estimator, mappings, use_depth)
+    divisor, depth_images = (depth_divisor(mappings) if use_depth else None), 0
     out = Path(out)
     partial = out.with_name(out.name + ".partial")
     lines, done = _read_partial(partial)
     if done:
         log.info("resuming: %d images already done in %s", len(done), partial)
-    todo = image_targets(dataset, estimator.obj_ids)
+    todo = image_targets(dataset, mapped.obj_ids)
     keys = list(todo)[: max_images if max_images is not None else None]
+
+    def load(key: ImageKey) -> ImageInput:
+        img_boxes = None if boxes is None else boxes.get(key, Detections.empty())
+        return _load_image(dataset, key, todo[key], img_boxes, divisor)
+
     partial.parent.mkdir(parents=True, exist_ok=True)
-    with partial.open("w", encoding="utf-8") as fh:
-        # Rewrite what survived (drops a torn tail), then append image by image.
+    bar = tqdm(total=len(keys), desc="predict", unit="img", disable=not progress)
+    bar.update(sum(k in done for k in keys))
+    with partial.open("w", encoding="utf-8") as fh, bar:
+        # Rewrite what survived (drops a torn tail), then append batch by batch.
         fh.write("".join(ln + "\n" for ln in lines))
         fh.flush()
-        for key in tqdm(keys, desc="predict", unit="img", disable=not progress, initial=0):
-            if key in done:
-                continue
-            img_boxes = None
-            if boxes is not None:
-                img_boxes = boxes.get(key, Detections.empty())
-            chunk, secs, had_depth = _predict_image(
-                dataset, estimator, key, todo[key], img_boxes, divisor if use_depth else None
-            )
-            chunk = [*chunk, f"# done {key[0]},{key[1]},{secs}"]
-            depth_images += had_depth
-            done[key] = secs
+        batches = _batches([k for k in keys if k not in done], batch_size)
+        for batch, images in _decoded_batches(batches, load):
+            chunk, secs = _predict_batch(mapped, batch, images)
+            depth_images += sum(im.depth is not None for im in images)
+            done.update(dict.fromkeys(batch, secs))
             fh.write("".join(c + "\n" for c in chunk))
             fh.flush()
             lines.extend(chunk)
+            bar.update(len(batch))
     try:
         est, dets = _partial_to_outputs(lines, partial)
     except ResultsError as err:  # only a foreign or hand-edited partial file gets here

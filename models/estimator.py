@@ -9,14 +9,14 @@ setting is a field of :class:`bopsurg.models.predict_config.PredictConfig`.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from bopsurg.errors import BopsurgError
-from bopsurg.estimation import Detections, PosePredictions
+from bopsurg.estimation import Detections, ImageInput, PosePredictions
 from bopsurg.models import config_tree
 from bopsurg.models.predict_config import PredictConfig, weight_file
 from bopsurg.models.stages.detect import DetectStage, best_boxes
@@ -96,7 +96,6 @@ class GdrNetEstimator:
         lines += [s.report() for s in (self.refine, self.ends) if s is not None]
         return "; ".join(x for x in lines if x) or None
 
-    @torch.inference_mode()
     def predict(
         self,
         rgb: np.ndarray,
@@ -108,34 +107,80 @@ class GdrNetEstimator:
     ) -> PosePredictions:
         """Poses of the objects in one image (see :class:`bopsurg.estimation.PoseEstimator`);
         ``depth`` (H, W) mm, 0 where there is no reading, is used by the RGB-D fit."""
-        wanted = tuple(o for o in (obj_ids or self.obj_ids) if o in self.obj_ids)
-        if not wanted:
-            return PosePredictions.empty()
-        found = best_boxes(
-            self.detect(rgb) if boxes is None else boxes,
-            wanted,
-            self.config.detect.max_per_object,
-        )
-        if len(found) == 0:
-            return PosePredictions.empty()
-        image = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1)[None].float() / 255
-        K_t = torch.as_tensor(K, dtype=torch.float32, device=self.device)
-        b = torch.as_tensor(found.bbox, dtype=torch.float32, device=self.device)
+        return self.predict_batch([ImageInput(rgb, K, obj_ids, boxes, depth)])[0]
+
+    @torch.inference_mode()
+    def predict_batch(self, images: Sequence[ImageInput]) -> list[PosePredictions]:
+        """Poses of the objects in each of several images, the same as :meth:`predict` of each:
+        the detector on all images at once, the pose head on all their boxes, the needle
+        stages (one fit) on all their needles. Images of different sizes go in one batch per
+        size."""
+        out: list[PosePredictions] = [PosePredictions.empty() for _ in images]
+        found = self._boxes(images)
+        sizes: dict[tuple[int, ...], list[int]] = {}
+        for i, im in enumerate(images):
+            if len(found[i]):
+                sizes.setdefault(tuple(im.rgb.shape), []).append(i)
+        for rows in sizes.values():
+            preds = self._predict_same_size([images[i] for i in rows], [found[i] for i in rows])
+            for i, pred in zip(rows, preds, strict=True):
+                out[i] = pred
+        return out
+
+    def _boxes(self, images: Sequence[ImageInput]) -> list[Detections]:
+        """The best boxes of the wanted objects in each image (our detector's, in one batch,
+        where an image brings none)."""
+        wanted = [
+            tuple(o for o in (im.obj_ids or self.obj_ids) if o in self.obj_ids) for im in images
+        ]
+        detect = [i for i, im in enumerate(images) if im.boxes is None and wanted[i]]
+        ours: dict[int, Detections] = {}
+        if detect:
+            if self.detector is None:
+                raise BopsurgError(
+                    "no detector loaded: set detector (a checkpoint) or pass --boxes"
+                )
+            found = self.detector.batch([images[i].rgb for i in detect])
+            ours = dict(zip(detect, found, strict=True))
+        per = self.config.detect.max_per_object
+        return [
+            best_boxes(ours.get(i, im.boxes), wanted[i], per) if wanted[i] else Detections.empty()
+            for i, im in enumerate(images)
+        ]
+
+    def _predict_same_size(
+        self, images: Sequence[ImageInput], found: Sequence[Detections]
+    ) -> list[PosePredictions]:
+        """The poses of the boxes ``found`` in images of one size (each with a box)."""
+        dev = self.device
+        counts = [len(f) for f in found]
+        index = np.repeat(np.arange(len(images)), counts)
+        stack = np.stack([im.rgb for im in images])
+        image = torch.from_numpy(stack).to(dev).permute(0, 3, 1, 2).float() / 255
+        K = np.stack([np.asarray(images[i].K, np.float64) for i in index.tolist()])
+        bbox = np.concatenate([f.bbox for f in found]).astype(np.float64)
+        b = torch.as_tensor(bbox, dtype=torch.float32, device=dev)
         box_xywh = torch.cat([b[:, :2] - 0.5, b[:, 2:]], dim=1)  # pixel-centre convention
-        R, t = self.head(image, K_t, box_xywh)
-        bbox_out = np.array(found.bbox, dtype=np.float64, copy=True)
+        K_t = torch.as_tensor(K, dtype=torch.float32, device=dev)
+        index_t = torch.as_tensor(index, device=dev)
+        R, t = self.head(image, K_t, box_xywh, index_t)
         if self.head.obj_id == NEEDLE_OBJ_ID:
-            R, t = self._needle_stages(image, K, K_t, box_xywh, HeadPoses(R, t), depth, bbox_out)
-        return PosePredictions(found.obj_id, found.score, R, t, bbox_out)
+            depth = [images[i].depth for i in index.tolist()] if self.uses_depth else None
+            batch = _Batch(image, K, K_t, index, index_t, box_xywh)
+            R, t = self._needle_stages(batch, HeadPoses(R, t), depth, bbox)
+        ends = np.cumsum(counts)[:-1]
+        return [
+            PosePredictions(f.obj_id, f.score, R_i, t_i, b_i)
+            for f, R_i, t_i, b_i in zip(
+                found, np.split(R, ends), np.split(t, ends), np.split(bbox, ends), strict=True
+            )
+        ]
 
     def _needle_stages(
         self,
-        image: torch.Tensor,
-        K: np.ndarray,
-        K_t: torch.Tensor,
-        box_xywh: torch.Tensor,
+        batch: _Batch,
         poses: HeadPoses,
-        depth: np.ndarray | None,
+        depth: list[np.ndarray | None] | None,
         bbox: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Refinement and end check of needle poses: R, t mm; the BOP boxes ``bbox`` (n, 4) of
@@ -144,18 +189,36 @@ class GdrNetEstimator:
         unheld = np.zeros(len(R), dtype=bool)
         if self.refine is not None:
             ref = self.refine(
-                image,
-                K,
-                box_xywh,
+                batch.image,
+                batch.K,
+                batch.box_xywh,
                 poses,
-                head=lambda g: self.head(image, K_t, g),
-                depth=depth if self.uses_depth else None,
+                head=lambda g, rows: self.head(
+                    batch.image, batch.K_t[rows], g, batch.index_t[rows]
+                ),
+                depth=depth,
+                index=batch.roi_image,
             )
             R, t, unheld = ref.R, ref.t, ref.unheld
             bbox[ref.grown] = ref.boxes[ref.grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
         if self.ends is not None:
-            R = self.ends(image, K, R, t, unheld)
+            R = self.ends(batch.image, batch.K, R, t, unheld, batch.roi_image)
         return R, t
+
+
+class _Batch(NamedTuple):
+    """The ROIs of a batch of images of one size, as the needle stages take them."""
+
+    #: (B, 3, H, W) float RGB in [0, 1].
+    image: torch.Tensor
+    #: (n, 3, 3) each ROI's intrinsics, px (float64, and float32 on the device).
+    K: np.ndarray
+    K_t: torch.Tensor
+    #: (n,) each ROI's image in ``image`` (and on the device).
+    roi_image: np.ndarray
+    index_t: torch.Tensor
+    #: (n, 4) boxes (x, y, w, h), pixel-centre px.
+    box_xywh: torch.Tensor
 
 
 def create(options: Mapping[str, Any]) -> GdrNetEstimator:

@@ -12,6 +12,10 @@ from torch import Tensor, nn
 class BaseConv(nn.Module):
     """Conv (no bias) + BatchNorm (eps 1e-3, momentum 0.03) + SiLU; 'same' padding."""
 
+    #: The norm applied right after the convolution (it folds into it:
+    #: :func:`bopsurg.models.inference.fold_batchnorm`).
+    FOLDS = (("conv", "bn"),)
+
     def __init__(self, c_in: int, c_out: int, k: int = 1, stride: int = 1, groups: int = 1) -> None:
         super().__init__()
         self.conv = nn.Conv2d(c_in, c_out, k, stride, (k - 1) // 2, groups=groups, bias=False)

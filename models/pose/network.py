@@ -47,6 +47,10 @@ def _conv_norm_act(cin: int, cout: int, norm: str, stride: int = 1) -> list[nn.M
 class BasicBlock(nn.Module):
     """ResNet basic block: two 3×3 convs and a (projected when needed) shortcut."""
 
+    #: The norms applied right after the convolutions (with ``norm="bn"``, they fold into
+    #: them: :func:`bopsurg.models.inference.fold_batchnorm`).
+    FOLDS = (("conv1", "norm1"), ("conv2", "norm2"))
+
     def __init__(self, cin: int, cout: int, stride: int, norm: str) -> None:
         super().__init__()
         self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)

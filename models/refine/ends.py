@@ -82,14 +82,17 @@ def swapped(R: F64, arc: ArcModel) -> F64:
 
 
 def end_frames(K: F64, R: F64, t: F64, arc: ArcModel, cfg: EndConfig) -> tuple[F64, F64, F64]:
-    """Image frames of the two ends of poses ``R`` (n, 3, 3), ``t`` (n, 3) mm.
+    """Image frames of the two ends of poses ``R`` (n, 3, 3), ``t`` (n, 3) mm seen by cameras
+    ``K`` (3, 3) px, or (n, 3, 3) one per pose.
 
     Returns:
         centre (n, 2, 2) px (OpenCV pixel centres), axis (n, 2, 2) unit image direction of the
         wire's outward tangent at each end, side (n, 2) px; end 0 the tail, 1 the tip. Ends
         behind the camera get NaN.
     """
-    R, t, K = np.asarray(R, float), np.asarray(t, float), np.asarray(K, float)
+    R, t = np.asarray(R, float), np.asarray(t, float)
+    K = np.broadcast_to(np.asarray(K, float), (len(R), 3, 3))
+    KT = K.transpose(0, 2, 1)
     a = arc.arc_rad
     ends = arc.radius * np.array([[1.0, 0.0, 0.0], [np.cos(a), np.sin(a), 0.0]])
     out = np.array([[0.0, -1.0, 0.0], [-np.sin(a), np.cos(a), 0.0]])  # outward tangents
@@ -99,11 +102,11 @@ def end_frames(K: F64, R: F64, t: F64, arc: ArcModel, cfg: EndConfig) -> tuple[F
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(X[..., 2:] > 1e-6, X[..., 2:], np.nan)
         zy = np.where(Y[..., 2:] > 1e-6, Y[..., 2:], np.nan)
-        uv = (X @ K.T)[..., :2] / z
-        uv_y = (Y @ K.T)[..., :2] / zy
+        uv = (X @ KT)[..., :2] / z
+        uv_y = (Y @ KT)[..., :2] / zy
         d = uv_y - uv
         axis = d / np.linalg.norm(d, axis=-1, keepdims=True)
-        side = cfg.scale * K[0, 0] * arc.radius / z[..., 0]
+        side = cfg.scale * K[:, :1, 0] * arc.radius / z[..., 0]
     return uv, axis, side
 
 
@@ -126,6 +129,25 @@ def sample_patches(
     return F.grid_sample(
         src, norm.to(src.dtype), mode="bilinear", padding_mode="zeros", align_corners=False
     )
+
+
+def _patches_of(
+    image: torch.Tensor,
+    centre: torch.Tensor,
+    axis: torch.Tensor,
+    side: torch.Tensor,
+    size: int,
+    index: NDArray[np.int64],
+) -> torch.Tensor:
+    """:func:`sample_patches` of patches on several images (B, C, H, W): patch i on image
+    ``index[i]``, each image's patches from a view of it (no copy per patch)."""
+    if image.shape[0] == 1:
+        return sample_patches(image, centre, axis, side, size)
+    out = centre.new_empty((len(centre), image.shape[1], size, size))
+    for b in np.unique(index):
+        rows = torch.as_tensor(np.flatnonzero(index == b), device=centre.device)
+        out[rows] = sample_patches(image[b : b + 1], centre[rows], axis[rows], side[rows], size)
+    return out
 
 
 class EndNet(nn.Module):
@@ -167,9 +189,12 @@ class EndJudge:
         self.stats = EndStats()
 
     @torch.inference_mode()
-    def logits(self, image: torch.Tensor, K: F64, R: F64, t: F64) -> F64:
+    def logits(
+        self, image: torch.Tensor, K: F64, R: F64, t: F64, index: NDArray[np.int64] | None = None
+    ) -> F64:
         """(n, 2) tip logits of the tail (column 0) and tip (column 1) patches of the poses;
-        NaN for an end that does not project (behind the camera)."""
+        NaN for an end that does not project (behind the camera). ``image`` (B, 3, H, W),
+        pose i in image ``index[i]`` (None: all in image 0) seen by ``K`` (3, 3) or K[i]."""
         uv, axis, side = end_frames(K, R, t, self.arc, self.cfg)
         n = len(uv)
         ok = np.isfinite(uv).all(-1) & np.isfinite(axis).all(-1) & np.isfinite(side)
@@ -179,19 +204,27 @@ class EndJudge:
             c = torch.as_tensor(uv[ok], dtype=torch.float32, device=dev)
             a = torch.as_tensor(axis[ok], dtype=torch.float32, device=dev)
             s = torch.as_tensor(side[ok], dtype=torch.float32, device=dev)
-            x = sample_patches(image, c, a, s, self.cfg.patch)
+            idx = np.zeros(n, np.int64) if index is None else np.asarray(index, np.int64)
+            x = _patches_of(image, c, a, s, self.cfg.patch, np.repeat(idx[:, None], 2, 1)[ok])
             out[ok] = self.net(x).double().cpu().numpy()
         return out
 
     def __call__(
-        self, image: torch.Tensor, K: F64, R: F64, t: F64, margin: float | F64 | None = None
+        self,
+        image: torch.Tensor,
+        K: F64,
+        R: F64,
+        t: F64,
+        margin: float | F64 | None = None,
+        index: NDArray[np.int64] | None = None,
     ) -> tuple[F64, NDArray[np.bool_]]:
         """The rotations (n, 3, 3), tip and tail swapped where the patches say so, and which.
 
-        image (1, 3, H, W) float RGB in [0, 1]; K (3, 3) px; R (n, 3, 3); t (n, 3) mm;
-        ``margin``: logits, one or (n,) per pose (default: the judge's)."""
+        image (B, 3, H, W) float RGB in [0, 1]; K (3, 3) px or (n, 3, 3) per pose; R (n, 3,
+        3); t (n, 3) mm; ``margin``: logits, one or (n,) per pose (default: the judge's);
+        ``index`` (n,): the image of each pose (None: all in image 0)."""
         R = np.asarray(R, float)
-        lg = self.logits(image, K, R, t)
+        lg = self.logits(image, K, R, t, index)
         m = self.margin if margin is None else np.asarray(margin, float)
         swap = np.nan_to_num(lg[:, TAIL] - lg[:, TIP], nan=-np.inf) > m
         self.stats.checked += len(R)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from bopsurg.estimation import Detections
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
 from bopsurg.models.detector import DetectorConfig, YoloxDetector
 from bopsurg.models.detector.letterbox import letterbox
+from bopsurg.models.inference import for_inference
 from bopsurg.models.predict_config import DetectSettings
 
 
@@ -39,14 +41,27 @@ class DetectStage:
         self.cfg, self.settings, self.device = cfg, settings, device
         self.net = YoloxDetector(cfg)
         load_weights(self.net, state, path)
-        self.net.to(device).eval()
+        for_inference(self.net, device)
 
-    @torch.inference_mode()
     def __call__(self, rgb: np.ndarray) -> Detections:
         """Boxes in one (H, W, 3) uint8 image (BOP xywh, px) scoring at least ``conf``."""
-        image, scale = letterbox(rgb, self.cfg.input_hw)
-        x = torch.from_numpy(image).to(self.device).permute(2, 0, 1)[None].float() / 255
-        det = self.net.detect(x, conf_thr=self.settings.conf)[0].cpu().numpy().astype(np.float64)
+        return self.batch([rgb])[0]
+
+    @torch.inference_mode()
+    def batch(self, rgbs: Sequence[np.ndarray]) -> list[Detections]:
+        """Boxes in each of several (H, W, 3) uint8 images (BOP xywh, px) scoring at least
+        ``conf``: the letterboxed images in one forward."""
+        if not rgbs:
+            return []
+        boxed = [letterbox(rgb, self.cfg.input_hw) for rgb in rgbs]
+        x = torch.from_numpy(np.stack([im for im, _ in boxed])).to(self.device)
+        x = x.permute(0, 3, 1, 2).float().div_(255)
+        found = self.net.detect(x, conf_thr=self.settings.conf)
+        return [self._boxes(d, scale) for d, (_, scale) in zip(found, boxed, strict=True)]
+
+    def _boxes(self, det_t: torch.Tensor, scale: float) -> Detections:
+        """One image's detections (k, 6) in input px -> BOP boxes in image px."""
+        det = det_t.cpu().numpy().astype(np.float64)
         xyxy = det[:, :4] / scale
         xywh = np.concatenate([xyxy[:, :2], xyxy[:, 2:] - xyxy[:, :2]], axis=1)
         obj = np.array([self.classes[int(c)] for c in det[:, 5]], np.int64)

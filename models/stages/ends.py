@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bopsurg.models.inference import for_inference
 from bopsurg.models.predict_config import EndsSettings
 from bopsurg.models.refine.ends import EndJudge, load_judge
 
@@ -27,25 +28,35 @@ class EndStage:
     @classmethod
     def load(cls, path: str | Path, settings: EndsSettings, device: torch.device) -> EndStage:
         """The stage on the ``needle_ends`` checkpoint ``path``."""
-        return cls(load_judge(path, device, settings.margin), settings)
+        judge = load_judge(path, device, settings.margin)
+        for_inference(judge.net, device)
+        return cls(judge, settings)
 
     def __call__(
-        self, image: torch.Tensor, K: np.ndarray, R: np.ndarray, t: np.ndarray, unheld: np.ndarray
+        self,
+        image: torch.Tensor,
+        K: np.ndarray,
+        R: np.ndarray,
+        t: np.ndarray,
+        unheld: np.ndarray,
+        index: np.ndarray | None = None,
     ) -> np.ndarray:
-        """The rotations (n, 3, 3), turned end for end where the classifier says so.
+        """The rotations (n, 3, 3), turned end for end where the classifier says so; the
+        patches of all n poses in one forward of the classifier.
 
         Args:
-            image: (1, 3, H, W) float RGB in [0, 1].
-            K: (3, 3) intrinsics, px.
+            image: (B, 3, H, W) float RGB in [0, 1].
+            K: (3, 3) intrinsics, px, or (n, 3, 3) one per pose.
             R: (n, 3, 3) rotations; t: (n, 3) translations, mm.
             unheld: (n,) bool: poses the RGB-D fit took without the pose head's prior (judged
                 at :attr:`EndsSettings.unheld_margin` when that is set).
+            index: (n,) the image of each pose (None: all in image 0).
         """
         s = self.settings
         margin = np.full(len(R), s.margin)
         if s.unheld_margin is not None:
             margin = np.where(unheld, s.unheld_margin, margin)
-        R_out: np.ndarray = self.judge(image, K, R, t, margin)[0]
+        R_out: np.ndarray = self.judge(image, K, R, t, margin, index)[0]
         return R_out
 
     def report(self) -> str:

@@ -19,6 +19,7 @@ import torch
 from bopsurg.bop.meshes import ObjectModel, load_ply
 from bopsurg.errors import BopsurgError
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
+from bopsurg.models.inference import for_inference
 from bopsurg.models.pose.config import PoseConfig
 from bopsurg.models.pose.decode import (
     mean_pose,
@@ -74,7 +75,7 @@ class HeadStage:
             ) from err
         self.net = GdrPoseNet(self.cfg)
         load_weights(self.net, state, path)
-        self.net.to(device).eval()
+        for_inference(self.net, device)
         self.settings, self.device, self.meta = settings, device, meta
         self.stats = HeadStats()
         #: The mesh the poses refer to: ``meta["model_ply"]`` (beside the checkpoint) when the
@@ -83,14 +84,24 @@ class HeadStage:
         self.model: ObjectModel = load_ply(Path(path).parent / ply) if ply else needle_mesh()
 
     @torch.inference_mode()
-    def __call__(self, image: torch.Tensor, K: torch.Tensor, box_xywh: torch.Tensor) -> HeadPoses:
-        """Poses of boxes (n, 4) (x, y, w, h), pixel-centre px, in ``image`` (1, 3, H, W) float
-        RGB in [0, 1] with intrinsics ``K`` (3, 3) px."""
-        K_b = K[None].expand(len(box_xywh), 3, 3)
+    def __call__(
+        self,
+        image: torch.Tensor,
+        K: torch.Tensor,
+        box_xywh: torch.Tensor,
+        index: torch.Tensor | None = None,
+    ) -> HeadPoses:
+        """Poses of boxes (n, 4) (x, y, w, h), pixel-centre px, in ``image`` (B, 3, H, W)
+        float RGB in [0, 1]: box i in image ``index[i]`` ((n,) long; None: all in image 0),
+        with intrinsics ``K`` (3, 3) px, or (n, 3, 3) one per box."""
+        n = len(box_xywh)
+        K_b = K[None].expand(n, 3, 3) if K.dim() == 2 else K
+        if index is None:
+            index = torch.zeros(n, dtype=torch.long, device=image.device)
         centre, side = dzi_boxes(box_xywh, None, self.cfg, tuple(image.shape[-2:]))
         if self.settings.decode == "direct":
-            return self._zoomed_direct(image, K_b, centre, side, box_xywh[:, 2:])
-        out = self._run(image, centre, side)
+            return self._zoomed_direct(image, K_b, centre, side, box_xywh[:, 2:], index)
+        out = self._run(image, centre, side, index)
         R, t, ok = pnp_ransac_from_output(out, K_b, centre, side, self.normaliser, self.cfg)
         R_d, t_d = pose_from_output(out, K_b, centre, box_xywh[:, 2:], side, self.cfg)
         # float64 rotations (the network's float32 Gram-Schmidt is off by ~1e-7)
@@ -114,11 +125,11 @@ class HeadStage:
         )
 
     def _run(
-        self, image: torch.Tensor, centre: torch.Tensor, side: torch.Tensor
+        self, image: torch.Tensor, centre: torch.Tensor, side: torch.Tensor, index: torch.Tensor
     ) -> dict[str, torch.Tensor]:
-        """The network's outputs on the square crops (centre (m, 2), side (m,) px)."""
+        """The network's outputs on the square crops (centre (m, 2), side (m,) px) of the
+        images ``index`` (m,)."""
         cfg, hw = self.cfg, tuple(image.shape[-2:])
-        index = torch.zeros(len(centre), dtype=torch.long, device=self.device)
         roi = crop(image, centre, side, cfg.roi_in, "bilinear", index=index)
         out: dict[str, torch.Tensor] = self.net(roi, roi_coord_2d(centre, side, cfg.roi_out, hw))
         return out
@@ -130,6 +141,7 @@ class HeadStage:
         centre: torch.Tensor,
         side: torch.Tensor,
         wh: torch.Tensor,
+        index: torch.Tensor,
     ) -> HeadPoses:
         """Direct decoding averaged over the ``zoom`` crops of each ROI, in one batch of n·k
         crops."""
@@ -137,7 +149,7 @@ class HeadStage:
         zoom = torch.tensor(self.settings.zoom, dtype=side.dtype, device=side.device)
         sides = (side[:, None] * zoom).clamp(1.0, float(max(image.shape[-2:]))).reshape(-1)
         centres = centre.repeat_interleave(k, dim=0)
-        out = self._run(image, centres, sides)
+        out = self._run(image, centres, sides, index.repeat_interleave(k, dim=0))
         R, t = pose_from_output(
             out, K.repeat_interleave(k, dim=0), centres, wh.repeat_interleave(k, dim=0), sides,
             self.cfg,

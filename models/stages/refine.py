@@ -8,7 +8,7 @@ the pose head's pose, with the mask's depth points when there is a depth image.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -16,12 +16,18 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from bopsurg.models.inference import for_inference
 from bopsurg.models.predict_config import RecropSettings, RefineSettings
-from bopsurg.models.refine.refiner import NeedleRefiner, Segmenter
+from bopsurg.models.refine.refiner import NeedleRefiner, RoiMasks, Segmenter
 from bopsurg.models.stages.head import HeadPoses
 
-#: Re-runs the pose head on boxes (n, 4) (x, y, w, h), pixel-centre px, of the same image.
-HeadFn = Callable[[torch.Tensor], HeadPoses]
+#: Re-runs the pose head on grown boxes (m, 4) (x, y, w, h), pixel-centre px, of the ROIs
+#: ``rows`` ((m,) indices into the stage's ROIs: their images and cameras).
+HeadFn = Callable[[torch.Tensor, np.ndarray], HeadPoses]
+
+#: Depth for the fit: None (RGB), one (H, W) image for all ROIs, or one entry per ROI (an
+#: (H, W) image, mm, 0 where there is no reading, or None).
+Depth = np.ndarray | Sequence[np.ndarray | None] | None
 
 
 class Refinement(NamedTuple):
@@ -76,8 +82,15 @@ def grown_boxes(
     return np.where(grow[:, None], union, boxes), grow
 
 
+def _depth_rows(depth: Depth, rows: np.ndarray) -> Depth:
+    """The depth of the ROIs ``rows`` (bool (n,)): one image stays one image."""
+    if depth is None or isinstance(depth, np.ndarray):
+        return depth
+    return [depth[i] for i in np.flatnonzero(rows).tolist()]
+
+
 class RefineStage:
-    """Segment, re-crop and fit the needle ROIs of one image.
+    """Segment, re-crop and fit the needle ROIs of a batch of images.
 
     Args:
         refiner: The segmenter and the fits (:class:`NeedleRefiner`).
@@ -92,6 +105,7 @@ class RefineStage:
     def load(cls, path: str | Path, settings: RefineSettings, device: torch.device) -> RefineStage:
         """The stage on the segmenter checkpoint ``path``."""
         seg = Segmenter(path, device, settings.mask)
+        for_inference(seg.net, device)
         return cls(NeedleRefiner.for_segmenter(seg, settings.fit, settings.depth), settings.recrop)
 
     def __call__(
@@ -101,47 +115,80 @@ class RefineStage:
         box_xywh: torch.Tensor,
         poses: HeadPoses,
         head: HeadFn | None = None,
-        depth: np.ndarray | None = None,
+        depth: Depth = None,
+        index: np.ndarray | None = None,
     ) -> Refinement:
-        """The refined poses of needle boxes (n, 4) (x, y, w, h), pixel-centre px.
+        """The refined poses of needle boxes (n, 4) (x, y, w, h), pixel-centre px, of a batch
+        of images; the fits of all n ROIs in one :meth:`NeedleRefiner.fit`.
 
         Args:
-            image: (1, 3, H, W) float RGB in [0, 1].
-            K: (3, 3) intrinsics, px.
+            image: (B, 3, H, W) float RGB in [0, 1].
+            K: (3, 3) intrinsics, px, or (n, 3, 3) one per ROI.
             box_xywh: The boxes.
             poses: The pose head's poses of the boxes.
             head: Re-runs the pose head on grown boxes (None: no re-crops).
-            depth: (H, W) depth image, mm (0: no reading), or None: RGB only.
+            depth: None (RGB only), one (H, W) depth image, mm (0: no reading), or one per
+                ROI (:data:`Depth`).
+            index: (n,) the image of each ROI (None: all in image 0).
         """
-        K = np.asarray(K, float)
-        refiner = self.refiner
-        masks = refiner.observe(image, K, box_xywh, poses.R, poses.t)
+        n = len(box_xywh)
+        K = np.broadcast_to(np.asarray(K, float), (n, 3, 3)).copy()  # writable, per ROI
+        index = np.zeros(n, dtype=np.int64) if index is None else np.asarray(index)
+        masks = self._observe(image, K, box_xywh, poses.R, poses.t, index)
         boxes = box_xywh.detach().cpu().double().numpy()
         first = (poses.R, poses.t, masks, boxes)  # what an undone re-crop falls back to
         R, t = poses.R.copy(), poses.t.copy()  # the re-crops write into these
-        grew = np.zeros(len(R), dtype=bool)
-        todo = np.ones(len(R), dtype=bool)  # ROIs whose box may still grow
+        grew = np.zeros(n, dtype=bool)
+        todo = np.ones(n, dtype=bool)  # ROIs whose box may still grow
         passes = self.recrop.passes if self.recrop.growth > 0 and head is not None else 0
         for _ in range(passes):
-            grown, redo = grown_boxes(boxes, refiner.visible_boxes(masks), self.recrop.growth)
+            grown, redo = grown_boxes(boxes, self.refiner.visible_boxes(masks), self.recrop.growth)
             redo &= todo
             if not redo.any() or head is None:
                 break
             # the needle runs past its box: pose head and segmenter again on all that was seen
             g = torch.as_tensor(grown[redo], dtype=box_xywh.dtype, device=box_xywh.device)
-            R[redo], t[redo] = head(g)
-            masks = masks.replaced(redo, refiner.observe(image, K, g, R[redo], t[redo]))
+            R[redo], t[redo] = head(g, np.flatnonzero(redo))
+            again = self._observe(image, K[redo], g, R[redo], t[redo], index[redo])
+            masks = masks.replaced(redo, again)
             boxes, todo, grew = np.where(redo[:, None], grown, boxes), redo, grew | redo
-        out = refiner.fit(masks, K, R, t, depth)
+        out = self.refiner.fit(masks, K, R, t, depth)
         R, t, changed, unheld = out.R, out.t, out.changed, out.unheld
         back = grew & ~changed if self.recrop.undo_unimproved else np.zeros_like(grew)
         if back.any():  # the re-crop's fit was refused: the first box's fit instead
             R0, t0, masks0, boxes0 = first
-            redo = refiner.fit(masks0.subset(back), K, R0[back], t0[back], depth)
+            redo = self.refiner.fit(
+                masks0.subset(back), K[back], R0[back], t0[back], _depth_rows(depth, back)
+            )
             R[back], t[back], unheld[back] = redo.R, redo.t, redo.unheld
             changed[back], boxes[back], grew[back] = redo.changed, boxes0[back], False
         self._count(changed, grew, unheld)
         return Refinement(R, t, boxes, grew, unheld)
+
+    def _observe(
+        self,
+        image: torch.Tensor,
+        K: np.ndarray,
+        box_xywh: torch.Tensor,
+        R: np.ndarray,
+        t: np.ndarray,
+        index: np.ndarray,
+    ) -> RoiMasks:
+        """The segmenter's masks of the ROIs (:meth:`NeedleRefiner.observe`), image by image
+        of the batch; K (m, 3, 3) and ``index`` (m,) per ROI."""
+        parts, order = [], []
+        for b in np.unique(index):
+            rows = np.flatnonzero(index == b)
+            sel = torch.as_tensor(rows, device=box_xywh.device)
+            m = self.refiner.observe(image[b : b + 1], K[rows[0]], box_xywh[sel], R[rows], t[rows])
+            parts.append(m)
+            order.append(rows)
+        inv = np.argsort(np.concatenate(order), kind="stable")
+        return RoiMasks(
+            np.concatenate([m.prob for m in parts])[inv],
+            np.concatenate([m.origin for m in parts])[inv],
+            np.concatenate([m.step for m in parts])[inv],
+        )
 
     def _count(self, changed: np.ndarray, grew: np.ndarray, unheld: np.ndarray) -> None:
         st = self.stats

@@ -14,8 +14,14 @@ from bopsurg.bop.detections import gt_detections, load_detections, save_detectio
 from bopsurg.bop.images import load_depth, load_rgb, save_depth
 from bopsurg.bop.results import load_results
 from bopsurg.cli.main import main
-from bopsurg.errors import ResultsError, ShapeError
-from bopsurg.estimation import Detections, PoseEstimator, PosePredictions
+from bopsurg.errors import BopsurgError, ResultsError, ShapeError
+from bopsurg.estimation import (
+    Detections,
+    ImageInput,
+    PoseEstimator,
+    PosePredictions,
+    predict_images,
+)
 from bopsurg.example import ExampleSpec, write_example_dataset
 from bopsurg.prediction import image_targets, predict_dataset
 
@@ -279,3 +285,77 @@ def test_an_estimator_that_uses_depth_gets_it_in_mm_unless_rgb_only(tmp_path):
     run = predict_dataset(ds, est, tmp_path / "r3.csv", progress=False, depth=False)
     assert est.calls == [{}] * 3
     assert run.depth_images == 0
+
+
+class BatchCounter(GtEstimator):
+    """:class:`GtEstimator` with ``predict_batch``: records the size of every batch."""
+
+    def __init__(self, dataset: BopDataset, fail_after: int | None = None) -> None:
+        super().__init__(dataset, fail_after)
+        self.batches: list[int] = []
+
+    def predict_batch(self, images):
+        self.batches.append(len(images))
+        return [self.predict(im.rgb, im.K, obj_ids=im.obj_ids, boxes=im.boxes) for im in images]
+
+
+def test_batches_give_the_same_results_resume_and_share_their_time(example, tmp_path):
+    ds = BopDataset(example.root, "test")
+    n = len(image_targets(ds, (1,)))
+    one = predict_dataset(ds, GtEstimator(ds), tmp_path / "one.csv", progress=False)
+    # killed in the second batch of 3: the first batch is done, the second lost
+    with pytest.raises(KeyboardInterrupt):
+        predict_dataset(ds, BatchCounter(ds, 4), tmp_path / "b.csv", batch_size=3, progress=False)
+    resumed = BatchCounter(ds)
+    run = predict_dataset(ds, resumed, tmp_path / "b.csv", batch_size=3, progress=False)
+    left = n - 3
+    assert resumed.batches == [3] * (left // 3) + ([left % 3] if left % 3 else [])
+    assert run.images == n
+    a, b = load_results(tmp_path / "one.csv"), load_results(tmp_path / "b.csv")
+    np.testing.assert_array_equal(a.R, b.R)
+    np.testing.assert_array_equal(a.t, b.t)
+    assert len(a) == len(one.estimates)
+    # the images of one batch share its time; a --max-images cut ends in a short batch
+    cut = BatchCounter(ds)
+    run = predict_dataset(ds, cut, tmp_path / "c.csv", batch_size=4, max_images=5, progress=False)
+    assert cut.batches == [4, 1]
+    assert run.images == 5
+    c = load_results(tmp_path / "c.csv")
+    keys = zip(c.scene_id.tolist(), c.im_id.tolist(), strict=True)
+    per_image = dict(zip(keys, c.time.tolist(), strict=True))
+    assert (c.time > 0).all()
+    assert len(set(list(per_image.values())[:4])) == 1  # the first batch's images
+    with pytest.raises(BopsurgError, match="batch size"):
+        predict_dataset(ds, GtEstimator(ds), tmp_path / "d.csv", batch_size=0)
+
+
+def test_predict_images_loops_over_predict_without_predict_batch():
+    rgb = np.zeros((4, 5, 3), np.uint8)
+    images = [ImageInput(rgb, np.eye(3), depth=np.ones((4, 5))), ImageInput(rgb, np.eye(3))]
+    est = DepthEstimator()
+    assert len(predict_images(est, images)) == 2
+    np.testing.assert_array_equal(est.calls[0]["depth"], np.ones((4, 5)))
+    assert est.calls[1] == {"depth": None}
+    est = DepthEstimator()
+    predict_images(est, images, depth=False)  # an RGB-only run: not even the keyword
+    assert est.calls == [{}, {}]
+
+    class Short:
+        obj_ids = (1,)
+
+        def predict(self, rgb, K, *, obj_ids=None, boxes=None):
+            return PosePredictions.empty()
+
+        def predict_batch(self, images):
+            return []
+
+    with pytest.raises(BopsurgError, match="returned 0 results for 2 images"):
+        predict_images(Short(), images)
+
+
+def test_predict_cli_refuses_a_batch_size_below_one(example, tmp_path, capsys):
+    args = ["predict", str(example.root), "--out", str(tmp_path / "r.csv"), "--batch-size", "0"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--batch-size" in err
+    assert "\n" not in err

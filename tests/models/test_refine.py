@@ -526,7 +526,8 @@ def _recrop_case(extra=None, fit=None, recrop=None):
     R0, t0 = _perturbed(R, t)
     heads = []
 
-    def head(box):
+    def head(box, rows):
+        assert len(rows) == len(box)  # the ROIs re-run: their images and cameras
         heads.append(box.numpy().copy())
         return HeadPoses(np.repeat(R0[None], len(box), 0), np.repeat(t0[None], len(box), 0))
 
