@@ -11,6 +11,7 @@ import yaml
 from bopsurg.cli.main import main
 from bopsurg.data_spec import (
     MARKER,
+    DataSpec,
     is_made,
     made_from_other,
     mark_made,
@@ -39,7 +40,9 @@ GOOD = {
 
 def test_a_good_spec_and_its_commands(tmp_path):
     spec = parse_data_spec(GOOD)
-    assert spec.train == ("train_a",) and spec.val == ("val_a",) and spec.test == ()
+    assert spec.train == ("train_a",)
+    assert spec.val == ("val_a",)
+    assert spec.test == ()
     a = spec.splits["train_a"]
     assert (a.duration, a.period, a.rgb_format, a.min_visib) == (30.0, 2.0, "png", 0.1)
     assert a.record_argv(tmp_path, 501) == [
@@ -103,7 +106,8 @@ def test_roles_stay_apart(change, message):
 def test_the_marker_says_which_spec_made_a_split(tmp_path):
     spec = parse_data_spec(GOOD)
     a = spec.splits["train_a"]
-    assert not is_made(tmp_path, a) and made_from_other(tmp_path, a) is None
+    assert not is_made(tmp_path, a)
+    assert made_from_other(tmp_path, a) is None
     (tmp_path / "train_a").mkdir()
     mark_made(tmp_path, a)
     assert (tmp_path / "train_a" / MARKER).is_file()
@@ -143,11 +147,13 @@ def test_dry_run_prints_the_commands_and_runs_none(tmp_path, capsys):
     assert out[0] == f"$ bopsurg record --out {bags}/seed301_30s.bag --seed 301 --duration 30"
     assert out[1].startswith(f"$ bopsurg generate {bags}/seed301_30s.bag --out {root} ")
     assert "--split val_a --domain wide --replays 2 --period 1 --seed 31" in out[1]
-    assert len(out) == 3 and out[2].startswith("would make 1 split(s)")
-    assert not root.exists() and not bags.exists()
+    assert len(out) == 3
+    assert out[2].startswith("would make 1 split(s)")
+    assert not root.exists()
+    assert not bags.exists()
 
 
-def _all_specs() -> dict[str, object]:
+def _all_specs() -> dict[str, DataSpec]:
     out = {str(SPLITS_FILE): spec_of_file(yaml.safe_load(SPLITS_FILE.read_text()), SPLITS_FILE)}
     for r in RECIPES:
         out[r.name] = spec_of_file(yaml.safe_load(r.read_text()), r)
@@ -161,20 +167,22 @@ def test_the_committed_specs_use_new_seeds_and_one_definition_per_split():
     specs = _all_specs()
     assert len(specs) == 5
     file_spec = specs[str(SPLITS_FILE)]
-    assert set(file_spec.test) == {"test_paper", "test_wide"}  # type: ignore[attr-defined]
-    sealed = [file_spec.splits[n] for n in file_spec.test]  # type: ignore[attr-defined]
+    assert set(file_spec.test) == {"test_paper", "test_wide"}
+    sealed = [file_spec.splits[n] for n in file_spec.test]
     defined: dict[str, object] = {}
     for where, spec in specs.items():
-        for s in spec.splits.values():  # type: ignore[attr-defined]
+        for s in spec.splits.values():
             assert not USED_BAGS & set(s.bags), (where, s.name)
             assert s.seed not in USED_GENERATE_SEEDS, (where, s.name)
             assert defined.setdefault(s.name, s) == s, (where, s.name)
         if where != str(SPLITS_FILE):
-            assert spec.val == file_spec.val, where  # type: ignore[attr-defined]
-            assert spec.train and not spec.test, where  # type: ignore[attr-defined]
-            for name in spec.train:  # type: ignore[attr-defined]
-                t = spec.splits[name]  # type: ignore[attr-defined]
+            assert spec.val == file_spec.val, where
+            assert spec.train, where
+            assert not spec.test, where
+            for name in spec.train:
+                t = spec.splits[name]
                 for x in sealed:
-                    assert not set(t.bags) & set(x.bags) and t.seed != x.seed, (where, name)
-    domains = {s.domain for s in file_spec.splits.values()}  # type: ignore[attr-defined]
+                    assert not set(t.bags) & set(x.bags), (where, name)
+                    assert t.seed != x.seed, (where, name)
+    domains = {s.domain for s in file_spec.splits.values()}
     assert domains == {"paper", "wide"}
