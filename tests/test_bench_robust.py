@@ -1,4 +1,5 @@
-"""bench/bench_robust.py's table, from a hand-made evaluation folder (no model run)."""
+"""bench/bench_robust.py's table, from a hand-made evaluation folder (no model run), and the
+committed split specs it and the robust_* recipes read."""
 
 from __future__ import annotations
 
@@ -9,8 +10,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+from bopsurg.data_spec import DataSpec, spec_of_file
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "bench"
+SPLITS_FILE = BENCH / "robust_splits.yaml"
+RECIPES = sorted((ROOT / "bopsurg" / "recipes").glob("robust_*.yaml"))
+#: Seeds earlier data used (the model card; issue #41's test sets): never again.
+USED_BAGS = {*range(1, 73), 101, 102, *range(201, 205)}
+USED_GENERATE_SEEDS = set(range(21))
 sys.path.insert(0, str(BENCH))
 bench_robust = pytest.importorskip("bench_robust")
 
@@ -94,3 +104,38 @@ def test_model_arguments_reach_predict():
         "--config", "c.yaml", "--option", "ends.margin=2", "--detector", "d.pt",
         "--option", "refine.segmenter=s.pt",
     ]  # fmt: skip
+
+
+def _all_specs() -> dict[str, DataSpec]:
+    out = {str(SPLITS_FILE): spec_of_file(yaml.safe_load(SPLITS_FILE.read_text()), SPLITS_FILE)}
+    for r in RECIPES:
+        out[r.name] = spec_of_file(yaml.safe_load(r.read_text()), r)
+    return out
+
+
+def test_the_committed_specs_use_new_seeds_and_one_definition_per_split():
+    """The robust splits and recipes: no seed of earlier data, a split of the same name is
+    the same split everywhere, the recipes validate on the file's val splits, and no recipe
+    trains on a sealed test split's episodes or seeds."""
+    specs = _all_specs()
+    assert len(specs) == 5
+    file_spec = specs[str(SPLITS_FILE)]
+    assert set(file_spec.test) == {"test_paper", "test_wide"}
+    sealed = [file_spec.splits[n] for n in file_spec.test]
+    defined: dict[str, object] = {}
+    for where, spec in specs.items():
+        for s in spec.splits.values():
+            assert not USED_BAGS & set(s.bags), (where, s.name)
+            assert s.seed not in USED_GENERATE_SEEDS, (where, s.name)
+            assert defined.setdefault(s.name, s) == s, (where, s.name)
+        if where != str(SPLITS_FILE):
+            assert spec.val == file_spec.val, where
+            assert spec.train, where
+            assert not spec.test, where
+            for name in spec.train:
+                t = spec.splits[name]
+                for x in sealed:
+                    assert not set(t.bags) & set(x.bags), (where, name)
+                    assert t.seed != x.seed, (where, name)
+    domains = {s.domain for s in file_spec.splits.values()}
+    assert domains == {"paper", "wide"}
