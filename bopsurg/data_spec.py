@@ -38,7 +38,13 @@ ROLES = ("train", "val", "test")
 #: Written into a split folder once ``generate`` finished it: the spec it was made from.
 MARKER = "bopsurg_data.json"
 _REQUIRED = ("domain", "bags", "replays", "seed")
-_OPTIONAL = {"duration": 30.0, "period": 2.0, "rgb_format": "png", "min_visib": 0.1}
+_OPTIONAL = {
+    "duration": 30.0,
+    "period": 2.0,
+    "rgb_format": "png",
+    "min_visib": 0.1,
+    "domain_revision": None,
+}
 
 
 @dataclass(frozen=True)
@@ -56,6 +62,9 @@ class SplitSpec:
         seed: ``generate --seed``.
         rgb_format: ``generate --rgb-format`` (png or jpg).
         min_visib: ``generate --min-visib`` (frames whose needle shows less are dropped).
+        domain_revision: For ``wide``: the revision of its draw that must have made the
+            split (``settings.domain_revision`` of ``bopsurg_generate.json``; a newer bopsurg
+            may draw other images from the same seeds), None: any.
     """
 
     name: str
@@ -67,6 +76,7 @@ class SplitSpec:
     period: float = 2.0
     rgb_format: str = "png"
     min_visib: float = 0.1
+    domain_revision: int | None = None
 
     def bag_path(self, bags_dir: Path, seed: int) -> Path:
         """Where the episode of ``record --seed seed`` is kept."""
@@ -142,6 +152,9 @@ def _field_problem(key: str, value: Any) -> str | None:
     if key in ("replays", "seed"):
         low = 1 if key == "replays" else 0
         return None if _integer(value) and value >= low else f"must be an integer >= {low}"
+    if key == "domain_revision":
+        ok = value is None or (_integer(value) and value >= 1)
+        return None if ok else f"must be an integer >= 1 (or null), got {value!r}"
     if key == "min_visib":
         ok = _number(value) and 0 <= value <= 1
         return None if ok else f"must be a number in [0, 1], got {value!r}"
@@ -169,6 +182,8 @@ def _split(
         problem = _field_problem(key, value) if key in known else None
         if problem:
             problems.append(f"{here}.{key}: {problem}")
+    if values.get("domain_revision") is not None and values.get("domain") != "wide":
+        problems.append(f"{here}.domain_revision: only the wide domain has revisions")
     if len(problems) > count:
         return None
     fields = {**_OPTIONAL, **values, "bags": tuple(values["bags"])}
@@ -297,6 +312,26 @@ def made_from_other(root: Path, spec: SplitSpec) -> str | None:
     new = spec.record()
     diff = [k for k in new if old.get(k) != new[k]] if isinstance(old, dict) else ["all"]
     return ", ".join(diff) if diff else None
+
+
+def check_revision(root: Path, spec: SplitSpec) -> None:
+    """Refuse a split drawn by another revision of its domain than ``spec`` pins.
+
+    Raises:
+        BopsurgError: The split's ``bopsurg_generate.json`` names another (or no) revision.
+    """
+    if spec.domain_revision is None:
+        return
+    record = root / spec.name / "bopsurg_generate.json"
+    try:
+        made = json.loads(record.read_text(encoding="utf-8"))["settings"].get("domain_revision")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        raise BopsurgError(f"{record}: unreadable, or no settings") from None
+    if made != spec.domain_revision:
+        raise BopsurgError(
+            f"{root / spec.name}: drawn by --domain {spec.domain} revision {made}, the spec "
+            f"pins {spec.domain_revision}: this bopsurg draws other images from these seeds"
+        )
 
 
 def missing_splits(root: Path, specs: list[SplitSpec]) -> list[SplitSpec]:

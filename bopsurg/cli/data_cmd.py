@@ -88,7 +88,7 @@ def _selected(spec: DataSpec, args: argparse.Namespace) -> tuple[str, ...] | Non
 
 def run(args: argparse.Namespace) -> int:
     """Record and generate what is missing, split by split."""
-    from bopsurg.data_spec import made_from_other, mark_made
+    from bopsurg.data_spec import check_revision, made_from_other, mark_made
 
     if args.workers < 1:
         raise BopsurgError(f"--workers must be >= 1, got {args.workers}")
@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
     for s in todo:
         _make(s, root, bags, args)
         if not args.dry_run:
+            check_revision(root, s)
             mark_made(root, s)
     verb = "would make" if args.dry_run else "made"
     print(f"{verb} {len(todo)} split(s) of {path} in {root} ({time.perf_counter() - t0:.0f} s)")

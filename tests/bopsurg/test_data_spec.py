@@ -84,6 +84,10 @@ def test_every_bad_field_is_its_own_line():
         ({"splits": {**GOOD["splits"], "val_b": {**GOOD["splits"]["val_a"], "seed": 51}},
           "val": ["val_b"]}, "generate seed 51 is also used by the train split"),
         ({"train": "train_a"}, "expected a list of split names"),
+        ({"splits": {**GOOD["splits"], "val_a": {**GOOD["splits"]["val_a"], "domain": "paper",
+          "domain_revision": 4}}}, "val_a.domain_revision: only the wide domain has revisions"),
+        ({"splits": {**GOOD["splits"], "val_a": {**GOOD["splits"]["val_a"],
+          "domain_revision": 0}}}, "val_a.domain_revision: must be an integer >= 1"),
         ({"splits": {}}, "splits: expected a mapping"),
     ],
 )  # fmt: skip

@@ -12,13 +12,14 @@ pytest.importorskip("rosbags")
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.cli.main import main
 from bopsurg.data_spec import MARKER, is_made, spec_of_file
+from bopsurg.generators.domain import DOMAIN_REVISIONS
 
 RECIPE = {
     "recipe": {"epochs": 1},
     "data": {
         "splits": {
             "train_tiny": {"domain": "wide", "bags": [901], "duration": 2, "replays": 1,
-                           "period": 1, "seed": 91},
+                           "period": 1, "seed": 91, "domain_revision": DOMAIN_REVISIONS["wide"]},
         },
         "train": ["train_tiny"],
     },
@@ -57,3 +58,21 @@ def test_makes_a_tiny_recipe_once_and_resumes(tmp_path, capsys):
     assert "$ bopsurg generate" in out
     assert is_made(root, spec)
     assert len(BopDataset(root, "train_tiny").scene(1).gt) == frames
+
+
+def test_a_split_drawn_by_another_revision_is_refused(tmp_path, capsys):
+    """The spec pins the wide draw's revision: a bopsurg whose draw differs says so and marks
+    nothing (its images are not the spec's)."""
+    old = {**RECIPE["data"]["splits"]["train_tiny"], "domain_revision": 1}
+    data = {"splits": {"train_tiny": old}, "train": ["train_tiny"]}
+    recipe = tmp_path / "old.yaml"
+    recipe.write_text(yaml.safe_dump({"data": data}), encoding="utf-8")
+    root = tmp_path / "data"
+    assert main(["data", str(recipe), "--root", str(root), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (
+        f"bopsurg: error: {root / 'train_tiny'}: drawn by --domain wide revision "
+        f"{DOMAIN_REVISIONS['wide']}, the spec pins 1: this bopsurg draws other images from "
+        "these seeds"
+    )
+    assert not (root / "train_tiny" / MARKER).exists()
