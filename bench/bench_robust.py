@@ -148,6 +148,10 @@ def main() -> None:
     ap.add_argument("--config", help="bopsurg predict --config FILE")
     add_predict_option(ap, "ends.margin=3")
     ap.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates")
+    ap.add_argument(
+        "--only", help="these test splits of the file only (comma-separated; two processes "
+        "may measure two splits into one --out at once)",
+    )  # fmt: skip
     ap.add_argument("--ambf", type=Path, help="also the AMBF pipeline's frames (a final look)")
     ap.add_argument("--json", type=Path, help="write the table's numbers here")
     args = ap.parse_args()
@@ -156,7 +160,10 @@ def main() -> None:
     spec = spec_of_file(read_mapping(args.splits), args.splits)
     argv = model_argv(args)
     rows: dict[str, dict[str, dict]] = {}
-    for name in spec.test:
+    names = args.only.split(",") if args.only else spec.test
+    for name in names:
+        if name not in spec.test:
+            raise SystemExit(f"{args.splits}: {name!r} is not one of its test splits")
         data = out / f"data_{name}"
         run(["data", str(args.splits), "--root", str(data), "--only", name, "--bags",
              str(out / "bags"), "--workers", str(args.workers), "--no-progress"])  # fmt: skip
