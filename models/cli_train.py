@@ -64,6 +64,11 @@ photometric augmentations (blur, noise, gamma, colour, JPEG; off unless configur
 the file, and --set SECTION.KEY=VALUE any one field after both. The resolved configuration
 is written to OUT/config.yaml (a valid --config file); resuming with a different
 configuration is refused. Print a preset's full defaults with --dump-config.
+
+A --config recipe with a data: section (bopsurg/recipes/robust_*.yaml) names the splits it
+trains and validates on, as record + generate settings: they are the default --split and
+--val-split, and one that DATASET lacks stops the run with the 'bopsurg data' command that
+makes it.
 """
 
 EPILOG = """\
