@@ -54,6 +54,17 @@ def _strict_medians(ev: dict, errors: pd.DataFrame) -> dict:
     return {**out, "found": f"{len(found)}/{n_gt}"}
 
 
+def import_ambf(src: Path, model: Path, data: Path) -> float:
+    """``bopsurg import ambf-yaml`` of SRC into ``data`` (then ``bopsurg check``); returns
+    the import's wall time in s."""
+    seconds = run(
+        ["import", "ambf-yaml", str(src), "--out", str(data), "--model", str(model),
+         "--no-progress"]
+    )  # fmt: skip
+    run(["check", str(data)])
+    return seconds
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -70,11 +81,7 @@ def main() -> None:
     fresh_dir(out)
     report: dict = {"src": str(src), "model": str(model)}
 
-    report["import_s"] = run(
-        ["import", "ambf-yaml", str(src), "--out", str(data), "--model", str(model),
-         "--no-progress"]
-    )  # fmt: skip
-    run(["check", str(data)])
+    report["import_s"] = import_ambf(src, model, data)
     ds = BopDataset(data, "test")
     gts = {(s, i): g for s in ds.scene_ids for i, g in ds.scene(s).gt.items()}
     depth = np.array([g[0].t[2] for g in gts.values()])

@@ -64,6 +64,11 @@ photometric augmentations (blur, noise, gamma, colour, JPEG; off unless configur
 the file, and --set SECTION.KEY=VALUE any one field after both. The resolved configuration
 is written to OUT/config.yaml (a valid --config file); resuming with a different
 configuration is refused. Print a preset's full defaults with --dump-config.
+
+A --config recipe with a data: section (bopsurg/recipes/robust_*.yaml) names the splits it
+trains and validates on, as record + generate settings: they are the default --split and
+--val-split, and one that DATASET lacks stops the run with the 'bopsurg data' command that
+makes it.
 """
 
 EPILOG = """\
@@ -118,14 +123,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("dataset", nargs="?", help="BOP dataset root")
     p.add_argument(
         "--split",
-        default="train",
+        default=None,
         help="training split, or several comma-separated (train,train_wide) read as one "
-        "(default: train)",
+        "(default: the --config recipe's data.train, else train)",
     )
     p.add_argument(
         "--val-split",
         default=None,
-        help="validation split (default: one scene in 10 held out, a seeded draw)",
+        help="validation split(s) (default: the --config recipe's data.val, else one scene in "
+        "10 held out, a seeded draw)",
     )
     p.add_argument("--out", metavar="DIR", help="run folder (created / resumed); required")
     p.add_argument(
@@ -223,14 +229,29 @@ def run(args: argparse.Namespace) -> int:
             f"--obj-ids: a {args.model} model is trained for one object; run one per object"
         )
     conf = resolve(args, len(obj_ids) if obj_ids else 1)
+    from bopsurg.models.run_config import (
+        apply_overrides,
+        check_splits_made,
+        read_config_file,
+        recipe_data,
+        run_splits,
+    )
+
+    raw = apply_overrides(read_config_file(args.config) if args.config else {}, args.set or [])
+    data = recipe_data(raw, f"--config {args.config}")
     if args.dump_config:
         from bopsurg.models.config_tree import to_yaml
         from bopsurg.models.run_config import resolved
 
-        print(to_yaml(resolved(args.model, *conf)), end="")
+        extra = {"data": raw["data"]} if data is not None else {}
+        print(to_yaml({**resolved(args.model, *conf), **extra}), end="")
         return 0
     if not args.dataset or not args.out:
         raise BopsurgError("the dataset and --out are required (except with --dump-config)")
+    split, val_split = run_splits(args.split, args.val_split, data)
+    if data is not None:
+        check_splits_made(args.dataset, [*split.split(","), *(val_split or "").split(",")],
+                          data, args.config)  # fmt: skip
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     preset, seed, cfg, recipe, loader = conf
@@ -243,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
     )
     t0 = time.perf_counter()
     path = trainer(
-        args.dataset, args.out, split=args.split, val_split=args.val_split, preset=preset,
+        args.dataset, args.out, split=split, val_split=val_split, preset=preset,
         recipe=recipe, seed=seed, device=args.device, restart=args.restart,
         progress=not args.no_progress, config=cfg, loader=loader, **objects,
     )  # fmt: skip

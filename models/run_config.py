@@ -17,6 +17,10 @@ One file configures one run of ``bopsurg train detector|pose|seg|ends --config F
     loader:              # how samples are read; does not change the result
       num_workers: 1
       cache_mb: 4096     # decoded samples kept in memory, MiB per set and process (0: none)
+    data:                # the splits it trains and validates on, as record + generate
+      splits: {train_a: {domain: wide, bags: [501], replays: 24, seed: 51}, ...}
+      train: [train_a]   # the default --split
+      val: [val_a]       # the default --val-split (bopsurg.data_spec; made by 'bopsurg data')
 
 Every section and key is optional (defaults: the preset's). Unknown keys are errors naming the
 file and the key. Command-line flags override the file, and ``--set SECTION.KEY=VALUE``
@@ -36,6 +40,7 @@ from typing import Any, TypeVar
 
 import yaml
 
+from bopsurg.data_spec import DataSpec, missing_splits, parse_data_spec
 from bopsurg.errors import BopsurgError
 from bopsurg.models.config_tree import to_plain, to_yaml
 from bopsurg.models.photometric import PhotometricConfig
@@ -43,7 +48,7 @@ from bopsurg.options import nest, read_mapping
 
 #: The model sections: each names the model a run trains (one per run).
 MODEL_SECTIONS = ("detector", "pose", "seg", "ends")
-SECTIONS = ("preset", "seed", *MODEL_SECTIONS, "recipe", "augment", "loader")
+SECTIONS = ("preset", "seed", *MODEL_SECTIONS, "recipe", "augment", "loader", "data")
 D = TypeVar("D")
 
 
@@ -106,6 +111,49 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
                 f"--config {p}: unknown key {key!r} (sections: {', '.join(SECTIONS)})"
             )
     return data
+
+
+def recipe_data(config: dict[str, Any], where: str) -> DataSpec | None:
+    """The ``data`` section of a ``--config`` mapping (None without one).
+
+    Raises:
+        BopsurgError: A bad section, one line per bad field (:func:`parse_data_spec`).
+    """
+    if "data" not in config:
+        return None
+    return parse_data_spec(config["data"], where, "data.")
+
+
+def run_splits(
+    split: str | None, val_split: str | None, data: DataSpec | None
+) -> tuple[str, str | None]:
+    """``(split, val_split)`` of a run: the flags when given, else the recipe's ``data.train``
+    and ``data.val``, else ``train`` and None (one scene in 10 held out)."""
+    if split is None:
+        split = ",".join(data.train) if data is not None and data.train else "train"
+    if val_split is None and data is not None and data.val:
+        val_split = ",".join(data.val)
+    return split, val_split
+
+
+def check_splits_made(
+    dataset: str | Path, splits: list[str], data: DataSpec, config: str | Path
+) -> None:
+    """Refuse a run whose recipe's splits ``dataset`` lacks (or holds unfinished, or made from
+    another spec): one line naming them and the command that makes them. Splits the recipe
+    does not define are left to the trainer.
+
+    Raises:
+        BopsurgError: A split of ``splits`` defined in ``data`` is not made in ``dataset``.
+    """
+    specs = data.selected(tuple(n for n in dict.fromkeys(splits) if n in data.splits))
+    missing = [s.name for s in missing_splits(Path(dataset), specs)]
+    if missing:
+        raise BopsurgError(
+            f"{dataset}: split{'s' if len(missing) > 1 else ''} {', '.join(missing)} of "
+            f"{config} missing or unfinished; make them with: bopsurg data {config} --root "
+            f"{dataset} --only {','.join(missing)}"
+        )
 
 
 def _coerce(value: Any, hint: Any, where: str) -> Any:

@@ -88,6 +88,11 @@ CORE: tuple[Command, ...] = (
         "bopsurg.cli.example_cmd",
     ),
     Command(
+        "data",
+        "make the splits a training recipe names: record + generate, resumable",
+        "bopsurg.cli.data_cmd",
+    ),
+    Command(
         "recipes",
         "list the shipped training recipes (bopsurg train --config), print one or its path",
         "bopsurg.cli.recipes_cmd",
