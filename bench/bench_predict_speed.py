@@ -23,6 +23,7 @@ there, and the times say more about the load than about the code.
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -87,6 +88,7 @@ def main() -> None:
         "OMP_NUM_THREADS=1: the work done, whatever else runs on the machine)",
     )
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--json", help="also write the median ms per image here, by batch size")
     args = ap.parse_args()
     if args.threads is not None:  # one thread: a machine shared with other jobs times fairly
         torch.set_num_threads(args.threads)
@@ -94,6 +96,7 @@ def main() -> None:
         prediction.time = SimpleNamespace(perf_counter=time.thread_time)  # type: ignore[assignment]
     ds = BopDataset(args.dataset, args.split)
     print(f"machine: {machine()}; torch {torch.__version__}, {torch.get_num_threads()} threads")
+    medians: dict[int, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for batch in args.batch_size:
             warmup = -(-args.warmup // batch) * batch
@@ -108,6 +111,7 @@ def main() -> None:
                 f"batch {batch}, {args.images} images timed after {warmup} warm-up, "
                 f"device {args.device}, {args.rounds} round(s), {clock}:"
             )
+            medians[batch] = {c: float(np.median(v)) for c, v in ms.items()}
             base = np.array(ms["networks alone"])
             for c, vals in ms.items():
                 v = np.array(vals)
@@ -117,6 +121,8 @@ def main() -> None:
                     f"  x{np.median(ratio):.2f} the networks alone "
                     f"(range {ratio.min():.2f}-{ratio.max():.2f})"
                 )
+    if args.json:
+        Path(args.json).write_text(json.dumps({"images": args.images, "ms_per_image": medians}))
 
 
 if __name__ == "__main__":

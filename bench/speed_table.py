@@ -8,6 +8,7 @@ process, then prints one table headed by the machine (platform, CPU model, cores
     python bench/speed_table.py [--poses 1000] [--estimates 100000] [--device cuda]
         [--data demo_out/data --results demo_out/results.csv
          --toolkit ../bop_toolkit --toolkit-python ../bop-venv/bin/python]
+        [--predict DATASET --batch-size 8]
 """
 
 from __future__ import annotations
@@ -54,6 +55,20 @@ def metric_rows(res: dict[str, Any], syms: int) -> list[str]:
     return rows
 
 
+def predict_rows(dataset: str, batch: int, out: Path) -> list[str]:
+    """``bopsurg predict``'s ms per image (bench_predict_speed.py), against the networks alone."""
+    argv = [dataset, "--batch-size", str(batch), "--images", "48"]
+    res = bench("bench_predict_speed.py", argv, out)
+    ms = res["ms_per_image"][str(batch)]
+    base = ms["networks alone"]
+    return [
+        f"| `bopsurg predict`, {name}, batch {batch}, 640x480 | {v:.0f} ms/image | "
+        f"networks alone {base:.0f} ms/image | {v / base:.2f}x the networks |"
+        for name, v in ms.items()
+        if name != "networks alone"
+    ]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--poses", type=int, default=1000)
@@ -65,6 +80,8 @@ def main() -> None:
     ap.add_argument("--results", help="its results CSV")
     ap.add_argument("--toolkit", help="thodan/bop_toolkit checkout")
     ap.add_argument("--toolkit-python", default="python")
+    ap.add_argument("--predict", metavar="DATASET", help="also bopsurg predict per image on it")
+    ap.add_argument("--batch-size", type=int, default=8, help="with --predict")
     args = ap.parse_args()
     size = ["--vertices", str(args.vertices), "--symmetries", str(args.symmetries)]
     with tempfile.TemporaryDirectory() as tmp:
@@ -94,6 +111,8 @@ def main() -> None:
                 f"{c['bopsurg_s']:.2f} s | "
                 f"{ref} | {ratio} |"
             )
+        if args.predict:
+            rows += predict_rows(args.predict, args.batch_size, t / "p.json")
     print(f"Machine: {machine()}\n")
     print("| workload | bopsurg | reference | ratio |\n|---|---|---|---|")
     print("\n".join(rows))
