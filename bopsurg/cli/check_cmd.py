@@ -6,6 +6,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 from bopsurg.cli.commands import help_of
+from bopsurg.cli.inputs import add_dataset
 from bopsurg.cli.progress import add_progress_arg
 
 if TYPE_CHECKING:
@@ -38,17 +39,7 @@ def register(sub: Subparsers) -> None:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("dataset", help="dataset root folder (holds models/ and the split folders)")
-    p.add_argument("--split", default="test", help="split folder name (default: test)")
-    p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr for train_pbr")
-    p.add_argument(
-        "--dataset",
-        dest="dataset_name",
-        metavar="NAME",
-        default=None,
-        help="a standard BOP dataset's defaults (lmo, tless, ycbv, itodd, hot3d ...; 'none': "
-        "no defaults); default: the one the folder's name matches (docs/datasets.md)",
-    )
+    add_dataset(p)
     p.add_argument("--no-images", action="store_true", help="skip reading images and masks")
     p.add_argument(
         "--max-problems", type=int, default=None, metavar="N", help="stop after N problems"

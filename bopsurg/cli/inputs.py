@@ -14,12 +14,13 @@ if TYPE_CHECKING:  # imported in the functions: building the parser stays light
     from bopsurg.estimation import Detections
 
 
-def add_dataset_and_results(p: argparse.ArgumentParser) -> None:
-    """``DATASET RESULTS --split --split-type``."""
+def add_dataset(p: argparse.ArgumentParser, *, results: bool = False) -> None:
+    """``DATASET [RESULTS] --split --split-type --dataset``."""
     p.add_argument("dataset", help="dataset root folder (holds models/ and the split folders)")
-    p.add_argument("results", help="BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time")
+    if results:
+        p.add_argument("results", help="BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time")
     p.add_argument("--split", default="test", help="split folder name (default: test)")
-    p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr")
+    p.add_argument("--split-type", default=None, help="split type suffix, e.g. pbr for train_pbr")
     p.add_argument(
         "--dataset",
         dest="dataset_name",
@@ -28,6 +29,11 @@ def add_dataset_and_results(p: argparse.ArgumentParser) -> None:
         help="a standard BOP dataset's defaults (lmo, tless, ycbv, itodd, hot3d ...; 'none': "
         "no defaults); default: the one the folder's name matches (docs/datasets.md)",
     )
+
+
+def add_dataset_and_results(p: argparse.ArgumentParser) -> None:
+    """``DATASET RESULTS --split --split-type --dataset``."""
+    add_dataset(p, results=True)
 
 
 def load_dataset_and_results(args: argparse.Namespace) -> tuple[BopDataset, PoseEstimates]:
