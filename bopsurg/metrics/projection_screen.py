@@ -132,7 +132,10 @@ class ScreenVertices:
             self.mono_max: F64 = np.abs(mono).max(axis=1)
         self.usable = bool(np.all(self.mono_max < F32_LIMIT))
         self.v = X_h.shape[1]
-        self.mono32: F32 = np.ascontiguousarray(mono if self.usable else 0.0, dtype=np.float32)
+        # unusable (float32 would overflow): zeros of the right shape, never evaluated
+        self.mono32: F32 = np.ascontiguousarray(
+            mono if self.usable else np.zeros_like(mono), np.float32
+        )
 
 
 def screened_max(
