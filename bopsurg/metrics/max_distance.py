@@ -561,11 +561,10 @@ class _KernelProj(_Kernel):
         (V − e_v W)²) / W²``.
         """
         rows, a, b = self._grid_rows()
-        use32 = bool(np.all(np.abs(rows) @ self.c.y_abs < F32_LIMIT))
-        d = np.sqrt(self._grid_max(rows, np.float32 if use32 else np.float64))
-        if not use32:  # float64 throughout: rounding is within tol, as for the other bounds
-            return d
-        return np.maximum(d * (1.0 - b[:, None]) - a[:, None], 0.0)
+        if np.all(np.abs(rows) @ self.c.y_abs < F32_LIMIT):
+            return self._grid_max(rows, np.float32, a, b)
+        # float64 throughout: its rounding is within tol, as for the other bounds
+        return self._grid_max(rows, np.float64, np.zeros(self.n), np.zeros(self.n))
 
     def _grid_rows(self) -> tuple[F64, F64, F64]:
         """The grid's rows ``[P_g0 − e_u P_g2; P_g1 − e_v P_g2; P_g2]`` (n, m1, 3, 4), and the
@@ -588,12 +587,19 @@ class _KernelProj(_Kernel):
         b = (ew / (w_min - ew)).max(axis=1) + 3.0 * U32
         return rows, a, b
 
-    def _grid_max(self, rows: F64, dt: type[np.floating[Any]]) -> F64:
-        """(n, S) squared maxima over the grid vertices in ``dt``, returned as float64."""
+    def _grid_max(self, rows: F64, dt: type[np.floating[Any]], a: F64, b: F64) -> F64:
+        """(n, S) maxima over the grid vertices in ``dt`` lowered by ``a + b d`` (float64, px).
+
+        The square root and the lowering run in ``dt`` on each block while it is in cache:
+        ``b + 8u`` and ``a`` rounded up cover their rounding (the result is clipped at 0).
+        """
         c, m1, S = self.c, self.c.m1, self.s
         cols = [np.ascontiguousarray(c.Y1[:, q * S : (q + 1) * S], dtype=dt) for q in range(m1)]
         rows_t = np.moveaxis(rows.astype(dt), 0, 2)  # (m1, 3, n, 4)
         out = np.empty((self.n, S), dt)
+        u = float(np.finfo(dt).eps) / 2.0
+        scale = (1.0 - (b + 8.0 * u)).astype(dt)
+        shift = np.where(a > 0.0, a * (1.0 + 4.0 * u), 0.0).astype(dt)  # ≥ a after rounding
         nb = max(1, min(self.n, GRID_ELEMENTS // (3 * S * m1)))
         # Work buffers, one cache-sized block of poses: products (m1, 3, k, S) in the order
         # that makes each of u, v, w a contiguous block, then elementwise.
@@ -613,7 +619,11 @@ class _KernelProj(_Kernel):
                 np.add(sq, tmp, out=sq)
                 np.multiply(f[:, 2], f[:, 2], out=tmp)
                 np.divide(sq, tmp, out=sq)
-                np.max(sq, axis=0, out=out[blk])
+                o = np.max(sq, axis=0, out=out[blk])
+                np.sqrt(o, out=o)
+                np.multiply(o, scale[blk, None], out=o)
+                np.subtract(o, shift[blk, None], out=o)
+                np.maximum(o, 0.0, out=o)
         result: F64 = out.astype(np.float64)
         return result
 

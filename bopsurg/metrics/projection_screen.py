@@ -136,6 +136,22 @@ class ScreenVertices:
         self.mono32: F32 = np.ascontiguousarray(
             mono if self.usable else np.zeros_like(mono), np.float32
         )
+        self._work: tuple[F32, F32, F32, B] | None = None
+
+    def work(self, k: int) -> tuple[F32, F32, F32, B]:
+        """Work buffers for ``k`` pairs: forms (k, 3, V), two (k, V) and a (k, V) mask.
+
+        Kept across calls: fresh MB-sized buffers would cost page faults at every call.
+        """
+        if self._work is None or self._work[1].shape[0] < k:
+            v = self.v
+            self._work = (
+                np.empty((k, 3, v), np.float32),
+                np.empty((k, v), np.float32),
+                np.empty((k, v), np.float32),
+                np.empty((k, v), np.bool_),
+            )
+        return self._work
 
 
 def screened_max(
@@ -156,9 +172,7 @@ def screened_max(
     """
     k, v = q32.shape[0], verts.v
     kb = max(1, min(k, per_block))
-    buf = np.empty((kb, 3, v), np.float32)
-    sq, tmp = np.empty((kb, v), np.float32), np.empty((kb, v), np.float32)
-    mask = np.empty((kb, v), np.bool_)
+    buf, sq, tmp, mask = verts.work(kb)
     found = []
     for p0 in range(0, k, kb):
         n = min(kb, k - p0)
