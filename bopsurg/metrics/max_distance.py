@@ -12,7 +12,7 @@ provably do not change the value:
    sample says the hull is small (a solid box: ~800 of 5,000 left, 99 on the hull), and is
    skipped when 30 % or more of the sample is on its hull (a thin needle: ~2,700 left; Qhull
    would cost ≈ 10 ms to halve that). All vertices when there are too few evaluations to pay
-   for the probe. MSPD's projected distance is not convex, so MSPD evaluates all vertices.
+   for the probe. MSPD's projected distance is not convex, so MSPD screens all vertices (5.).
 2. **Branch and bound over symmetries.** The maximum over a subset of vertices is a lower bound
    of the maximum over all of them. Bounds are computed for every (pose, symmetry) from 4
    extreme vertices; each pose evaluates its smallest bound's symmetry in full (MSPD first
@@ -23,25 +23,39 @@ provably do not change the value:
    evaluated in full until no bound is below the best value found, each new maximising vertex
    tightening the bounds of the others. All poses advance together, in rounds (numpy
    operations over all active candidates; no Python loop over poses or vertices).
-3. **The symmetry family** (MSSD). BOP's continuous symmetries are rotations about one axis,
-   so ``[R_s | t_s] = W0 + a_s E1 + b_s E2`` (detected by an SVD of the set with a residual
-   check, see :func:`symmetry_family`; other sets take the generic path). The squared
+3. **The symmetry family.** BOP's continuous symmetries are rotations about one axis, so
+   ``[R_s | t_s] = W0 + a_s E1 + b_s E2`` (detected by an SVD of the set with a residual
+   check, see :func:`symmetry_family`; other sets take the generic path). MSSD: the squared
    distance of a vertex is then ``[1, a, b, a², ab, b²] · f`` with 6 coefficients per (pose,
-   vertex), so the first bounds of all S symmetries are one (S × 6) matrix product.
+   vertex), so the first bounds of all S symmetries are one (S × 6) matrix product. MSPD: the
+   GT-symmetry projection matrix and the screen's forms (5.) of a (pose, symmetry) pair are
+   a weighted sum of three per-pose matrices (their deviation from the reference's matrices
+   is added to the tolerance).
 4. **Quadratic form** (MSSD). ``‖D [x; 1]‖² = q · m(x)`` with the 10 entries q of ``DᵀD`` and
    the 10 monomials m(x) of the vertex, precomputed: a full evaluation is one 10-term product
    per vertex instead of a 3×4 product and a sum of squares. ``D`` is formed from the
    difference ``R_e − R_g R_s`` first, so the terms are of the size of the distance.
-5. **Final value by the reference's formula.** The search uses these cheaper equivalent forms
-   (and ``U · (1 / W)`` for ``U / W`` in MSPD); the returned value is recomputed with the
-   reference's direct difference formula at the maximising vertex of the winning symmetry, so
-   it equals the reference to float64 rounding (≤ 1e-9 relative; absolute near 0).
+5. **Float32 screen** (MSPD). ``π_e(x) − π_g(x) = (N_u, N_v) / N_w`` with three quadratic
+   forms of the vertex, formed in float64 after the two poses' terms cancel
+   (:mod:`~bopsurg.metrics.projection_screen`). A full evaluation computes all vertices in
+   float32 with an error bound computed per pair (≈ 1e-5 px on the bench) and then, in
+   float64, only the vertices whose float32 distance is within twice that bound of the
+   float32 maximum (usually one): the float64 maximum over all vertices, at about a third of
+   the cost. The first bounds (per grid vertex ``q`` one product of the rows
+   ``P_g − e_q w_g`` over all symmetries, ``e_q`` the estimate's projection of ``q``) and
+   the subset bounds are float32 values lowered by their error bound, so they stay bounds.
+6. **Final value by the reference's formula.** The search uses these cheaper equivalent forms
+   (and ``U · (1 / W)`` for ``U / W`` in MSPD's float64 fallback); the returned value is
+   recomputed with the reference's direct difference formula at the maximising vertex of the
+   winning symmetry, so it equals the reference to float64 rounding (≤ 1e-9 relative;
+   absolute near 0).
 
 Bounds are compared with a tolerance that exceeds any rounding difference between the forms
 (MSSD in mm², from the sizes of the terms of each form; ≈ 1e-9 px for MSPD), so a symmetry is
 only pruned if its exact value cannot be smaller; a near-tie can only change which of two
 equal (to rounding) values is returned. Matrix products are issued in blocks of at most
-``SERIAL_MACS`` multiply-adds, which OpenBLAS runs on one thread (see there).
+``SERIAL_MACS`` multiply-adds, which OpenBLAS runs on one thread (see there). Terms too large
+for float32 (coordinates beyond ~1e8 mm) take float64 instead of the screen.
 
 **NaN/inf (MSPD).** Vertices on the camera plane (z = 0) project to inf/nan. The reference then
 returns NaN when its first (identity) term is NaN (``np.max`` propagates NaN; Python's ``min``
