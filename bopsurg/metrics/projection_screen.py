@@ -99,6 +99,9 @@ def screen_bounds(q: F64, t_raw: F64, mono_max: F64) -> tuple[F64, F64, B]:
         its range, a bound too loose to be useful, or non-finite input).
     """
     sizes = np.abs(q) @ mono_max  # (k, 3) sizes of the cancelled terms
+    # 16u where 12u (coefficient, monomial, product, 10-term sum) suffices: the margin, ≥ 4u
+    # since |N_w| ≥ 1 makes sizes[:, 2] ≥ 1, also covers |N_w| ≥ 1 holding only to ~1e-8
+    # (the bound w_min in float64, the symmetry family's fit).
     err = 16.0 * U32 * sizes + 16.0 * U64 * t_raw  # each form's error, float32 and float64 parts
     ew = np.minimum(err[:, 2], 0.5)
     a = (err[:, 0] + err[:, 1]) / (1.0 - ew)
