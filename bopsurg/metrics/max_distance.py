@@ -711,7 +711,8 @@ class _KernelProj(_Kernel):
 
     def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
         if exact:
-            return self._full_f64(i, s, exact=True)
+            v, j = self._full_f64(i, s, exact=True)
+            return np.sqrt(v), j
         screen = self.c.screen
         q = self._coeffs(i, s)
         a, b, ok = screen_bounds(q, self.t_raw[i], screen.mono_max)
@@ -796,15 +797,17 @@ def _apply(P: F64, X: F64) -> F64:
 def _segment_max(seg: I64, vals: F64, idx: I64, m: int) -> tuple[F64, I64]:
     """Per segment ``0..m-1`` of the sorted ``seg``: the largest value and its ``idx``.
 
-    A segment with a non-finite value (overflow) gets NaN, so that its pose is redone
-    exhaustively; an empty one (cannot happen: a band holds its float32 maximiser) as well.
+    A non-finite value (overflow; not expected where the float32 screen is usable) wins its
+    segment, as NaN in ``np.max``, so that the final value is non-finite and the pose is
+    redone exhaustively. An empty segment (cannot happen: a band holds its float32
+    maximiser) gets NaN.
     """
-    o = np.lexsort((-vals, seg))
+    key = np.where(np.isfinite(vals), -vals, -np.inf)
+    o = np.lexsort((key, seg))
     seg, vals, idx = seg[o], vals[o], idx[o]
     first = np.r_[True, seg[1:] != seg[:-1]]
     val, arg = np.full(m, np.nan), np.zeros(m, dtype=np.int64)
     val[seg[first]], arg[seg[first]] = vals[first], idx[first]
-    val[seg[~np.isfinite(vals)]] = np.nan
     return val, arg
 
 

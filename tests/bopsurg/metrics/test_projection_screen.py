@@ -142,3 +142,16 @@ def test_generic_symmetry_set_uses_the_reference_matrices() -> None:
         [ref.mspd_ref(R_e[i], t_e[i], R_g[i], t_g[i], K_CAM, pts, syms) for i in range(30)]
     )
     assert_close(mspd(R_e, t_e, R_g, t_g, K_CAM, pts, syms), exp)
+
+
+def test_segment_max_lets_a_non_finite_value_win_its_segment() -> None:
+    seg = np.array([0, 0, 0, 1, 1, 2])
+    vals = np.array([1.0, 3.0, 2.0, 5.0, np.inf, 4.0])
+    idx = np.array([10, 11, 12, 13, 14, 15])
+    val, arg = max_distance._segment_max(seg, vals, idx, 4)
+    assert val[:3].tolist() == [3.0, np.inf, 4.0]
+    assert arg[:3].tolist() == [11, 14, 15]
+    assert np.isnan(val[3])  # no entry
+    val, arg = max_distance._segment_max(np.array([0, 0]), np.array([1.0, np.nan]), idx[:2], 1)
+    assert np.isnan(val[0])
+    assert arg[0] == 11
