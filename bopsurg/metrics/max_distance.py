@@ -12,7 +12,7 @@ provably do not change the value:
    sample says the hull is small (a solid box: ~800 of 5,000 left, 99 on the hull), and is
    skipped when 30 % or more of the sample is on its hull (a thin needle: ~2,700 left; Qhull
    would cost ≈ 10 ms to halve that). All vertices when there are too few evaluations to pay
-   for the probe. MSPD's projected distance is not convex, so MSPD evaluates all vertices.
+   for the probe. MSPD's projected distance is not convex, so MSPD screens all vertices (5.).
 2. **Branch and bound over symmetries.** The maximum over a subset of vertices is a lower bound
    of the maximum over all of them. Bounds are computed for every (pose, symmetry) from 4
    extreme vertices; each pose evaluates its smallest bound's symmetry in full (MSPD first
@@ -23,25 +23,39 @@ provably do not change the value:
    evaluated in full until no bound is below the best value found, each new maximising vertex
    tightening the bounds of the others. All poses advance together, in rounds (numpy
    operations over all active candidates; no Python loop over poses or vertices).
-3. **The symmetry family** (MSSD). BOP's continuous symmetries are rotations about one axis,
-   so ``[R_s | t_s] = W0 + a_s E1 + b_s E2`` (detected by an SVD of the set with a residual
-   check, see :func:`symmetry_family`; other sets take the generic path). The squared
+3. **The symmetry family.** BOP's continuous symmetries are rotations about one axis, so
+   ``[R_s | t_s] = W0 + a_s E1 + b_s E2`` (detected by an SVD of the set with a residual
+   check, see :func:`symmetry_family`; other sets take the generic path). MSSD: the squared
    distance of a vertex is then ``[1, a, b, a², ab, b²] · f`` with 6 coefficients per (pose,
-   vertex), so the first bounds of all S symmetries are one (S × 6) matrix product.
+   vertex), so the first bounds of all S symmetries are one (S × 6) matrix product. MSPD: the
+   GT-symmetry projection matrix and the screen's forms (5.) of a (pose, symmetry) pair are
+   a weighted sum of three per-pose matrices (their deviation from the reference's matrices
+   is added to the tolerance).
 4. **Quadratic form** (MSSD). ``‖D [x; 1]‖² = q · m(x)`` with the 10 entries q of ``DᵀD`` and
    the 10 monomials m(x) of the vertex, precomputed: a full evaluation is one 10-term product
    per vertex instead of a 3×4 product and a sum of squares. ``D`` is formed from the
    difference ``R_e − R_g R_s`` first, so the terms are of the size of the distance.
-5. **Final value by the reference's formula.** The search uses these cheaper equivalent forms
-   (and ``U · (1 / W)`` for ``U / W`` in MSPD); the returned value is recomputed with the
-   reference's direct difference formula at the maximising vertex of the winning symmetry, so
-   it equals the reference to float64 rounding (≤ 1e-9 relative; absolute near 0).
+5. **Float32 screen** (MSPD). ``π_e(x) − π_g(x) = (N_u, N_v) / N_w`` with three quadratic
+   forms of the vertex, formed in float64 after the two poses' terms cancel
+   (:mod:`~bopsurg.metrics.projection_screen`). A full evaluation computes all vertices in
+   float32 with an error bound computed per pair (≈ 1e-5 px on the bench) and then, in
+   float64, only the vertices whose float32 distance is within twice that bound of the
+   float32 maximum (usually one): the float64 maximum over all vertices, at about a third of
+   the cost. The first bounds (per grid vertex ``q`` one product of the rows
+   ``P_g − e_q w_g`` over all symmetries, ``e_q`` the estimate's projection of ``q``) and
+   the subset bounds are float32 values lowered by their error bound, so they stay bounds.
+6. **Final value by the reference's formula.** The search uses these cheaper equivalent forms
+   (and ``U · (1 / W)`` for ``U / W`` in MSPD's float64 fallback); the returned value is
+   recomputed with the reference's direct difference formula at the maximising vertex of the
+   winning symmetry, so it equals the reference to float64 rounding (≤ 1e-9 relative;
+   absolute near 0).
 
 Bounds are compared with a tolerance that exceeds any rounding difference between the forms
 (MSSD in mm², from the sizes of the terms of each form; ≈ 1e-9 px for MSPD), so a symmetry is
 only pruned if its exact value cannot be smaller; a near-tie can only change which of two
 equal (to rounding) values is returned. Matrix products are issued in blocks of at most
-``SERIAL_MACS`` multiply-adds, which OpenBLAS runs on one thread (see there).
+``SERIAL_MACS`` multiply-adds, which OpenBLAS runs on one thread (see there). Terms too large
+for float32 (coordinates beyond ~1e8 mm) take float64 instead of the screen.
 
 **NaN/inf (MSPD).** Vertices on the camera plane (z = 0) project to inf/nan. The reference then
 returns NaN when its first (identity) term is NaN (``np.max`` propagates NaN; Python's ``min``
@@ -55,6 +69,7 @@ there depends on the last bit of ``w``, as in the reference.
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,6 +79,16 @@ from bopsurg.metrics.point_subsets import (
     extreme_point_order,
     hull_probe,
     hull_vertex_indices,
+)
+from bopsurg.metrics.projection_screen import (
+    F32_LIMIT,
+    U32,
+    U64,
+    ScreenVertices,
+    quadric_coefficients,
+    raw_term_sizes,
+    screen_bounds,
+    screened_max,
 )
 
 F64 = NDArray[np.float64]
@@ -88,6 +113,10 @@ WORK = 1 << 16
 #: products are memory-bound, so threads gain little, and on a loaded machine waiting for a
 #: descheduled thread costs 10-100x.
 SERIAL_MACS = 1 << 19
+#: Values per block of MSPD's grid bounds (float32: 256 KiB, cache-sized).
+GRID_ELEMENTS = 1 << 16
+#: Pairs per block of MSPD's float32 screen.
+SCREEN_PAIRS = 32
 #: Vertices per block of MSSD's full evaluations.
 VERTEX_BLOCK = 1280
 #: MSSD computes the convex hull only for at least this many (pose, symmetry) evaluations.
@@ -223,6 +252,34 @@ class _Common:
             (v.start, np.ascontiguousarray(self.mono[:, v]))
             for v in chunks(self.mono.shape[1], VERTEX_BLOCK)
         ]
+
+    @functools.cached_property
+    def x_abs(self) -> F64:
+        """(4,) largest ``|x_j|`` of the homogeneous vertices (the last is 1)."""
+        result: F64 = np.abs(self.X_ch).max(axis=1)
+        return result
+
+    @functools.cached_property
+    def sym_abs(self) -> F64:
+        """(3, 4) largest ``|[R_s | t_s]|`` entries over the symmetries."""
+        result: F64 = np.abs(np.concatenate([self.R_sym, self.t_sym[:, :, None]], axis=2)).max(0)
+        return result
+
+    @functools.cached_property
+    def y_abs(self) -> F64:
+        """(4,) largest ``|y_j|`` of the grid's columns ``[R_s q + t_s; 1]``."""
+        result: F64 = np.abs(self.Y1).max(axis=1)
+        return result
+
+    @functools.cached_property
+    def levels_mono32(self) -> list[NDArray[np.float32]]:
+        """MSPD's float32 monomials of the bound subsets, (10, m) each."""
+        return [np.ascontiguousarray(self.screen.mono32[:, self.order[:m]]) for m in self.levels]
+
+    @functools.cached_property
+    def screen(self) -> ScreenVertices:
+        """MSPD's float32 monomials of all vertices."""
+        return ScreenVertices(self.X_ch)
 
     @functools.cached_property
     def rho_sym(self) -> float:
@@ -418,7 +475,13 @@ class _Kernel3D(_Kernel):
 
 
 class _KernelProj(_Kernel):
-    """``‖π(K, R_e, t_e, x) − π(K, R_g R_s, R_g t_s + t_g, x)‖`` over all vertices (px)."""
+    """``‖π(K, R_e, t_e, x) − π(K, R_g R_s, R_g t_s + t_g, x)‖`` over all vertices (px).
+
+    Full evaluations screen all vertices in float32 with a rigorous error bound and evaluate
+    the few that may hold the maximum in float64 (:mod:`~bopsurg.metrics.projection_screen`).
+    With a symmetry family, the GT-symmetry projection matrices and the screen's quadratic
+    forms are affine in ``(a_s, b_s)``: per pair a weighted sum of three per-pose matrices.
+    """
 
     first_picks = 8
 
@@ -433,8 +496,31 @@ class _KernelProj(_Kernel):
         with np.errstate(divide="ignore", invalid="ignore"):
             uvw = np.matmul(self.P_e, c.X_ch[:, c.order])
             self.est_sub = uvw[:, :2] / uvw[:, 2:3]  # (n, 2, |order|)
-        # Bounds on w = k3·X over all vertices and symmetries, to keep away from z = 0.
-        k3 = self.K[:, 2, :]
+        self._guard(R_e, te)
+        self.KR_g = np.matmul(self.K, self.R_g)
+        self.Kt_g = np.einsum("nij,nj->ni", self.K, self.tg)
+        # |P_g,s| ≤ |K R_g| max_s |[R_s | t_s]| + |[0 | K t_g]| entrywise, for every s.
+        abs_g = np.abs(self.KR_g) @ c.sym_abs
+        abs_g[:, :, 3] += np.abs(self.Kt_g)
+        self.B: F64 | None = None  # (n, 3, 3, 4): P_g,s = B0 + a_s B1 + b_s B2
+        if c.family is not None:
+            # the family's terms, summed in float64, are as large as |B0| + |a| |B1| + |b| |B2|
+            abs_g = np.maximum(abs_g, self._family_mats(abs_g))
+        self.rows_e, self.rows_g = np.abs(self.P_e) @ c.x_abs, abs_g @ c.x_abs  # (n, 3)
+        self.C: F64 | None = None  # (n, 3, 3, 10): the screen's forms, likewise
+        # The screen's forms over w_min² (≤ |w_e w_g|): |N_w| ≥ 1, sizes near the distances.
+        self.scale = 1.0 / np.where(self.unsafe, 1.0, self.w_min) ** 2
+        if self.B is not None:
+            mats = self.B.reshape(self.n * 3, 3, 4)
+            q = quadric_coefficients(np.repeat(self.P_e, 3, axis=0), mats)
+            self.C = np.ascontiguousarray(
+                q.reshape(self.n, 3, 3, 10) * self.scale[:, None, None, None]
+            )
+        self.t_raw = raw_term_sizes(self.rows_e, self.rows_g) * self.scale[:, None]
+
+    def _guard(self, R_e: F64, te: F64) -> None:
+        """``unsafe`` (near the camera plane), ``w_min`` (≤ |w| everywhere) and ``tol``."""
+        c, k3 = self.c, self.K[:, 2, :]
         k3n = np.linalg.norm(k3, axis=1)
         ge = np.linalg.norm(np.einsum("nji,nj->ni", R_e, k3), axis=1) * c.rho
         gg = np.linalg.norm(np.einsum("nji,nj->ni", self.R_g, k3), axis=1) * c.rho_sym
@@ -447,6 +533,7 @@ class _KernelProj(_Kernel):
             + np.linalg.norm(self.R_g, axis=(1, 2)) * c.rho_sym
         )
         self.unsafe = ~(w_min > PLANE_GUARD * k3n * scale)
+        self.w_min = w_min
         kmax = np.maximum(
             np.linalg.norm(self.K[:, 0], axis=1), np.linalg.norm(self.K[:, 1], axis=1)
         )
@@ -455,21 +542,126 @@ class _KernelProj(_Kernel):
             # Rounding of u = U / W, relative to the magnitudes involved, with a wide margin.
             self.tol = np.where(self.unsafe, np.inf, 256.0 * EPS * kmax * r * (1.0 + k3n * r))
 
+    def _family_mats(self, abs_g: F64) -> F64:
+        """``B`` of the family form and its deviation from the reference's matrices in ``tol``.
+
+        Returns the (n, 3, 4) entrywise bound ``|B0| + max|a| |B1| + max|b| |B2|``.
+        """
+        assert self.c.family is not None
+        ab, w0, e12, residual = self.c.family
+        self.B = np.empty((self.n, 3, 3, 4))
+        self.B[:, 0] = np.matmul(self.KR_g, w0)
+        self.B[:, 0, :, 3] += self.Kt_g
+        self.B[:, 1:] = np.einsum("nij,ejk->neik", self.KR_g, e12)
+        # |P_fam − P_ref| entrywise: the fit residual and the rounding of both sums.
+        amax = np.abs(ab).max(axis=0)
+        terms = np.abs(w0) + amax[0] * np.abs(e12[0]) + amax[1] * np.abs(e12[1])
+        abs_fam: F64 = np.abs(self.KR_g) @ terms
+        abs_fam[:, :, 3] += np.abs(self.Kt_g)
+        dev = np.abs(self.KR_g) @ (residual + 8.0 * EPS * terms) + 8.0 * EPS * abs_g
+        d = dev @ self.c.x_abs  # (n, 3): rows u, v, w over all vertices
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rows = np.maximum(abs_g, abs_fam) @ self.c.x_abs
+            u_max = (rows[:, 0] + rows[:, 1]) / self.w_min  # ≥ |u| + |v| of the GT points
+            fit = 2.0 * (d[:, 0] + d[:, 1] + u_max * d[:, 2]) / (self.w_min - d[:, 2])
+        self.tol = np.where(fit >= 0.0, self.tol + fit, np.inf)
+        return abs_fam
+
     def grid_lb(self) -> F64:
-        c, m1, S = self.c, self.c.m1, self.s
-        # K (R_g (R_s q + t_s) + t_g): rows u, v, w of the GT-sym projections of the subset.
+        """Bounds over the first ``GRID_POINTS`` vertices, in float32 lowered by its error (px).
+
+        Per grid vertex ``q`` one product gives ``U − e_u W``, ``V − e_v W`` and ``W`` for all
+        symmetries (``e`` the estimate's projection of ``q``): ``d² = ((U − e_u W)² +
+        (V − e_v W)²) / W²``.
+        """
+        rows, a, b = self._grid_rows()
+        if np.all(np.abs(rows) @ self.c.y_abs < F32_LIMIT):
+            return self._grid_max(rows, np.float32, a, b)
+        # float64 throughout: its rounding is within tol, as for the other bounds
+        return self._grid_max(rows, np.float64, np.zeros(self.n), np.zeros(self.n))
+
+    def _grid_rows(self) -> tuple[F64, F64, F64]:
+        """The grid's rows ``[P_g0 − e_u P_g2; P_g1 − e_v P_g2; P_g2]`` (n, m1, 3, 4), and the
+        error bound ``(a, b)`` (n,) each of their float32 distances (``|d₃₂ − d| ≤ a + b d``)."""
+        c, m1 = self.c, self.c.m1
         P_g = np.matmul(self.K, np.concatenate([self.R_g, self.tg[:, :, None]], axis=2))
-        est = self.est_sub[:, :, :m1, None]  # (n, 2, m1, 1)
-        out = np.empty((self.n, S))
+        e = np.moveaxis(self.est_sub[:, :, :m1], 1, 2)  # (n, m1, 2)
+        rows = np.repeat(P_g[:, None], m1, axis=1)
+        rows[:, :, :2] -= e[:, :, :, None] * P_g[:, None, 2:3, :]
+        # Per (pose, q): float32 rounding of the 4-term products (inputs included) and float64
+        # rounding of forming the rows, as in projection_screen.screen_bounds.
+        raw = np.abs(P_g) @ c.y_abs  # (n, 3)
+        err = 8.0 * U32 * (np.abs(rows) @ c.y_abs)  # (n, m1, 3)
+        err[:, :, :2] += 8.0 * U64 * (raw[:, None, :2] + np.abs(e) * raw[:, None, 2:])
+        err[:, :, 2] += 8.0 * U64 * raw[:, None, 2]
+        w_min = np.where(self.unsafe, 1.0, self.w_min)[:, None]  # ≤ |W| (safe poses)
+        ew = np.minimum(err[:, :, 2], 0.5 * w_min)
+        a = ((err[:, :, 0] + err[:, :, 1]) / (w_min - ew)).max(axis=1)
+        a[np.any(err[:, :, 2] >= 0.5 * w_min, axis=1)] = np.inf  # no useful bound
+        b = (ew / (w_min - ew)).max(axis=1) + 3.0 * U32
+        return rows, a, b
+
+    def _grid_max(self, rows: F64, dt: type[np.floating[Any]], a: F64, b: F64) -> F64:
+        """(n, S) maxima over the grid vertices in ``dt`` lowered by ``a + b d`` (float64, px).
+
+        The square root and the lowering run in ``dt`` on each block while it is in cache:
+        ``b + 8u`` and ``a`` rounded up cover their rounding (the result is clipped at 0).
+        """
+        c, m1, S = self.c, self.c.m1, self.s
+        cols = [np.ascontiguousarray(c.Y1[:, q * S : (q + 1) * S], dtype=dt) for q in range(m1)]
+        rows_t = np.moveaxis(rows.astype(dt), 0, 2)  # (m1, 3, n, 4)
+        out = np.empty((self.n, S), dt)
+        u = float(np.finfo(dt).eps) / 2.0
+        scale = (1.0 - (b + 8.0 * u)).astype(dt)
+        shift = np.where(a > 0.0, a * (1.0 + 4.0 * u), 0.0).astype(dt)  # ≥ a after rounding
+        nb = max(1, min(self.n, GRID_ELEMENTS // (3 * S * m1)))
+        # Work buffers, one cache-sized block of poses: products (m1, 3, k, S) in the order
+        # that makes each of u, v, w a contiguous block, then elementwise.
+        buf = np.empty(m1 * 3 * nb * S, dt)
+        sq_buf, tmp_buf = np.empty(m1 * nb * S, dt), np.empty(m1 * nb * S, dt)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            for b in chunks(self.n, max(1, WORK // (3 * S * m1))):
-                k = b.stop - b.start
-                uvw = (P_g[b].reshape(k * 3, 4) @ c.Y1).reshape(k, 3, m1, S)
-                uv = uvw[:, :2]
-                uv *= np.divide(1.0, uvw[:, 2])[:, None]
-                uv -= est[b]
-                out[b] = np.einsum("kiqs,kiqs->kqs", uv, uv).max(axis=1)
-        return np.sqrt(out)
+            for blk in chunks(self.n, nb):
+                k = blk.stop - blk.start
+                f = buf[: m1 * 3 * k * S].reshape(m1, 3, k, S)
+                for q in range(m1):
+                    a_q = np.ascontiguousarray(rows_t[q, :, blk]).reshape(3 * k, 4)
+                    np.matmul(a_q, cols[q], out=f[q].reshape(3 * k, S))
+                sq = sq_buf[: m1 * k * S].reshape(m1, k, S)
+                tmp = tmp_buf[: m1 * k * S].reshape(m1, k, S)
+                np.multiply(f[:, 0], f[:, 0], out=sq)
+                np.multiply(f[:, 1], f[:, 1], out=tmp)
+                np.add(sq, tmp, out=sq)
+                np.multiply(f[:, 2], f[:, 2], out=tmp)
+                np.divide(sq, tmp, out=sq)
+                o = np.max(sq, axis=0, out=out[blk])
+                np.sqrt(o, out=o)
+                np.multiply(o, scale[blk, None], out=o)
+                np.subtract(o, shift[blk, None], out=o)
+                np.maximum(o, 0.0, out=o)
+        result: F64 = out.astype(np.float64)
+        return result
+
+    def _gt_mats(self, i: I64, s: I64) -> F64:
+        """``P_g,s`` per pair for the bounds (the family form when there is one): (k, 3, 4)."""
+        if self.B is None:
+            return self._proj_mats(i, s)
+        assert self.c.family is not None
+        ab = self.c.family[0][s]
+        m = self.B[i]
+        P: F64 = m[:, 0] + ab[:, 0, None, None] * m[:, 1] + ab[:, 1, None, None] * m[:, 2]
+        return P
+
+    def _coeffs(self, i: I64, s: I64) -> F64:
+        """The screen's scaled quadratic forms per pair: (k, 3, 10)."""
+        if self.C is None:
+            q = quadric_coefficients(self.P_e[i], self._proj_mats(i, s))
+            result: F64 = q * self.scale[i, None, None]
+            return result
+        assert self.c.family is not None
+        ab = self.c.family[0][np.ascontiguousarray(s)]
+        m = self.C[np.ascontiguousarray(i)]
+        q = m[:, 0] + ab[:, 0, None, None] * m[:, 1] + ab[:, 1, None, None] * m[:, 2]
+        return q
 
     def _proj_mats(self, i: I64, s: I64) -> F64:
         """``K [R_g R_s | R_g t_s + t_g]`` per pair, as the reference builds P: (k, 3, 4)."""
@@ -481,9 +673,32 @@ class _KernelProj(_Kernel):
         return result
 
     def pairs_lb(self, i: I64, s: I64, level: int) -> F64:
+        # float32 forms over the subset, lowered by their error bound; in cache-sized blocks
+        # of pairs (the forms of all pairs at once would be MB-sized temporaries).
+        mono = self.c.levels_mono32[level]
+        m = mono.shape[1]
+        val = np.empty(i.size)
+        for blk in chunks(i.size, max(1, SERIAL_MACS // (30 * m))):
+            ib, sb = i[blk], s[blk]
+            q = self._coeffs(ib, sb)
+            a, b, ok = screen_bounds(q, self.t_raw[ib], self.c.screen.mono_max)
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # ok is false
+                f = (q.astype(np.float32).reshape(-1, 10) @ mono).reshape(-1, 3, m)
+                d2 = np.square(f[:, 0])
+                d2 += np.square(f[:, 1])
+                d2 /= np.square(f[:, 2])
+                d = np.sqrt(d2.max(axis=1).astype(np.float64))
+                v = np.maximum(d * (1.0 - b) - a, 0.0)
+            if not (ok.all() and self.c.screen.usable):
+                bad = np.flatnonzero(~ok) if self.c.screen.usable else np.arange(ib.size)
+                v[bad] = self._lb_f64(ib[bad], sb[bad], level)
+            val[blk] = v
+        return val
+
+    def _lb_f64(self, i: I64, s: I64, level: int) -> F64:
         m = self.c.levels[level]
         X_h = self.c.levels_h[level]
-        P = self._proj_mats(i, s)
+        P = self._gt_mats(i, s)
         val = np.empty(i.size)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             for b in chunks(i.size, max(1, WORK // (3 * m))):
@@ -495,6 +710,29 @@ class _KernelProj(_Kernel):
         return np.sqrt(val)
 
     def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
+        if exact:
+            v, j = self._full_f64(i, s, exact=True)
+            return np.sqrt(v), j
+        screen = self.c.screen
+        q = self._coeffs(i, s)
+        a, b, ok = screen_bounds(q, self.t_raw[i], screen.mono_max)
+        ok &= screen.usable
+        val, arg = np.empty(i.size), np.empty(i.size, dtype=np.int64)
+        if not ok.all():
+            bad = np.flatnonzero(~ok)
+            val[bad], arg[bad] = self._full_f64(i[bad], s[bad])
+        g = np.flatnonzero(ok)
+        if g.size:
+            kb = max(1, SERIAL_MACS // (30 * screen.v))
+            bp, bj = screened_max(q[g].astype(np.float32), screen, a[g], b[g], kb, SCREEN_PAIRS)
+            # The band in float64: the maximum over it is the maximum over all vertices.
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                sq = self._sq_flat(i[g][bp], s[g][bp], bj, reference=False)
+            val[g], arg[g] = _segment_max(bp, sq, bj, g.size)
+        return np.sqrt(val), arg
+
+    def _full_f64(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
+        """Maxima over all vertices in float64 (``exact``: true division, as the reference)."""
         p = self.c.X_ch.shape[1]
         # Estimate and GT-sym projection matrices, stacked so one product serves both.
         P = np.concatenate([self.P_e[i], self._proj_mats(i, s)], axis=1)  # (k, 6, 4)
@@ -508,8 +746,6 @@ class _KernelProj(_Kernel):
                 k = b.stop - b.start
                 uvw = np.matmul(P[b].reshape(-1, 4), self.c.X_ch, out=buf[: 6 * k])
                 uvw = uvw.reshape(k, 2, 3, p)
-                # u = U / W as U · (1 / W): within the tolerance, and numpy divides slowly
-                # when broadcasting; the returned value is recomputed by division in final().
                 uv = uvw[:, :, :2]
                 if exact:  # U / W as the reference: same inf/NaN where W is (near) 0
                     np.divide(uv, uvw[:, :, 2:3], out=uv)
@@ -519,25 +755,66 @@ class _KernelProj(_Kernel):
                 d = uv[:, 0]
                 np.subtract(d, uv[:, 1], out=d)  # estimate − GT-sym, as the reference
                 val[b], arg[b] = _rowwise_max(np.einsum("kip,kip->kp", d, d, out=sqbuf[:k]))
-        return np.sqrt(val), arg
+        return val, arg
 
-    def _dist_sq(self, i: I64, s: I64, jj: I64) -> F64:
-        """(k, m) squared projection distances at vertices ``X_c[jj]`` (reference's formula)."""
+    def _sq_flat(self, i: I64, s: I64, j: I64, reference: bool = True) -> F64:
+        """(k,) squared projection distances at vertices ``X_c[j]`` (the reference's formula;
+        ``reference=False``: with the bounds' GT-symmetry matrices)."""
+        P_g = self._proj_mats(i, s) if reference else self._gt_mats(i, s)
+        return self._dist_sq(i, P_g, j[:, None])[:, 0]
+
+    def _dist_sq(self, i: I64, P_g: F64, jj: I64) -> F64:
+        """(k, m) squared projection distances at vertices ``X_c[jj]``, jj (k, m)."""
         X = self.c.X_ch[:, jj]  # (4, k, m)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            ue = np.einsum("kij,jkm->kim", self.P_e[i], X)
-            ug = np.einsum("kij,jkm->kim", self._proj_mats(i, s), X)
-            d = ue[:, :2] / ue[:, 2:3] - ug[:, :2] / ug[:, 2:3]
-            result: F64 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
-            return result
+        ue, ug = _apply(self.P_e[i], X), _apply(P_g, X)
+        d = ue[:, :2] / ue[:, 2:3] - ug[:, :2] / ug[:, 2:3]
+        result: F64 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+        return result
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
-        result: F64 = np.sqrt(self._dist_sq(i, s, jj).max(axis=1))
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            sq = self._dist_sq(i, self._gt_mats(i, s), jj)
+        result: F64 = np.sqrt(sq.max(axis=1))
         return result
 
     def final(self, i: I64, s: I64, j: I64) -> F64:
-        with np.errstate(invalid="ignore"):
-            return np.sqrt(self._dist_sq(i, s, j[:, None])[:, 0])
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return np.sqrt(self._sq_flat(i, s, j))
+
+
+def _apply(P: F64, X: F64) -> F64:
+    """``P_k X[:, k, :]`` per k: (k, 3, 4) matrices on (4, k, m) points, (k, 3, m).
+
+    Four broadcast multiply-adds (summed in column order, as a dot product): faster than
+    einsum or a stacked matmul of tiny matrices.
+    """
+    out: F64 = P[:, :, 0, None] * X[0][:, None, :]
+    for c in range(1, 4):
+        out += P[:, :, c, None] * X[c][:, None, :]
+    return out
+
+
+def _segment_max(seg: I64, vals: F64, idx: I64, m: int) -> tuple[F64, I64]:
+    """Per segment ``0..m-1`` of the sorted ``seg``: the largest value and its ``idx``.
+
+    A non-finite value (overflow; not expected where the float32 screen is usable) wins its
+    segment, as NaN in ``np.max``, so that the final value is non-finite and the pose is
+    redone exhaustively. An empty segment (cannot happen: a band holds its float32
+    maximiser) gets NaN.
+    """
+    key = np.where(np.isfinite(vals), -vals, -np.inf)
+    o = np.lexsort((key, seg))
+    seg, vals, idx = seg[o], vals[o], idx[o]
+    first = np.r_[True, seg[1:] != seg[:-1]]
+    val, arg = np.full(m, np.nan), np.zeros(m, dtype=np.int64)
+    val[seg[first]], arg[seg[first]] = vals[first], idx[first]
+    return val, arg
+
+
+def _nonzero2d(mask: B) -> tuple[I64, I64]:
+    """``np.nonzero`` of a 2-D mask (same order), several times faster on wide rows."""
+    rows, cols = np.divmod(np.flatnonzero(mask), mask.shape[1])
+    return rows, cols
 
 
 def _search(k: _Kernel, g: I64, lb: F64) -> F64:
@@ -554,12 +831,12 @@ def _search(k: _Kernel, g: I64, lb: F64) -> F64:
         # Round 0's symmetry is chosen by the bounds of a larger subset for the few smallest
         # first bounds (worth it when a full evaluation is expensive: MSPD).
         kth = np.partition(lb, k.first_picks - 1, axis=1)[:, k.first_picks - 1]
-        ci, cs = np.nonzero(lb <= kth[:, None])
+        ci, cs = _nonzero2d(lb <= kth[:, None])
         lb[ci, cs] = np.maximum(lb[ci, cs], k.pairs_lb(g[ci], cs, 0))
     win_s = np.argmin(lb, axis=1)
     best, win_j = k.pairs_full(g, win_s)
     lb[rows, win_s] = np.inf
-    ci, cs = np.nonzero(lb < (best + tol)[:, None])
+    ci, cs = _nonzero2d(lb < (best + tol)[:, None])
     clb = lb[ci, cs]
     # Tighten: the maximising vertex of round 0 (near symmetries tend to peak at the same
     # vertex), then larger farthest-point subsets.
