@@ -41,7 +41,12 @@ from bopsurg.models.predict_config import PointsFitSettings
 from bopsurg.models.refine.arc import ArcModel, exp_so3, mirror_pose, same_ends
 from bopsurg.models.refine.fit import cauchy
 from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
-from bopsurg.models.refine.wire3d import stack_points, wire_distances, wire_residuals
+from bopsurg.models.refine.wire3d import (
+    camera_normal_equations,
+    stack_points,
+    wire_distances,
+    wire_residuals_model,
+)
 from bopsurg.needle import fit_circle
 
 F64 = NDArray[np.float64]
@@ -122,10 +127,11 @@ def _lm(
     points, ok = P[0][roi], P[1][roi]
 
     def objective(pose: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
-        r, J = wire_residuals(pose[0], pose[1], points, arc)
+        r, J = wire_residuals_model(pose[0], pose[1], points, arc)
         r = r * ok
         rho, w = cauchy(r, s.scale)
-        return (rho * ok).sum(-1), *normal_equations(r, w * ok, J)
+        H, g = normal_equations(r, w * ok, J, by_row=True)
+        return (rho * ok).sum(-1), *camera_normal_equations(H, g, pose[0])
 
     def moved(pose: tuple[Tensor, ...], step: Tensor) -> tuple[Tensor, ...]:
         return exp_so3(step[:, :3]) @ pose[0], pose[1] + step[:, 3:]

@@ -168,6 +168,24 @@ def test_the_tube_matches_the_rendered_wire_width():
     assert abs(np.median(sides)) < 0.35
 
 
+def test_stacked_maps_in_the_reused_buffer_equal_fresh_ones_with_zero_padding():
+    """The fit's maps go into a buffer kept between fits: a stack after one of other grids
+    (which left other values there) holds each grid and zeros in a smaller grid's padding."""
+    from bopsurg.models.refine.fit import Evidence, EvidenceBatch
+
+    rng = np.random.default_rng(8)
+    big = Evidence.from_mask(rng.uniform(size=(40, 40)) > 0.7, np.zeros(2), 1.0)
+    small = Evidence.from_mask(rng.uniform(size=(24, 24)) > 0.7, np.ones(2), 0.5)
+    cpu = torch.device("cpu")
+    EvidenceBatch.stack([big, big, big], cpu, reuse=True)  # fills the buffer with values
+    reused = EvidenceBatch.stack([big, small], cpu, reuse=True).maps.clone()
+    fresh = EvidenceBatch.stack([big, small], cpu).maps
+    torch.testing.assert_close(reused, fresh, atol=0, rtol=0)
+    assert not reused[:, 1, 24:].any()
+    assert not reused[:, 1, :, 24:].any()
+    torch.testing.assert_close(reused[0, 1, :24, :24], torch.as_tensor(small.dist))
+
+
 @pytest.mark.parametrize(("view_deg", "hidden"), [(30.0, 0.3), (60.0, 0.5)])
 def test_an_occluded_arc_does_not_pull_the_fit_off_the_true_pose(view_deg, hidden):
     # started at the truth, the default fit stays there (measured at most 0.53 mm / 2.9°: with
