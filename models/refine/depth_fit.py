@@ -44,6 +44,7 @@ from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_eq
 from bopsurg.models.refine.wire3d import (
     camera_normal_equations,
     stack_points,
+    strided_points,
     wire_distances,
     wire_residuals_model,
 )
@@ -183,7 +184,7 @@ def fit_depths(
     """
     s = settings or PointsFitSettings()
     R, t = np.asarray(R, float).reshape(-1, 3, 3), np.asarray(t, float).reshape(-1, 3)
-    pts = [_strided(np.asarray(p, float).reshape(-1, 3), s.max_points) for p in P]
+    pts = [strided_points(np.asarray(p, float).reshape(-1, 3), s.max_points) for p in P]
     out = DepthFits(
         R.copy(),
         t.copy(),
@@ -236,13 +237,6 @@ def _fit_rows(
     near = wire_distances(R_b, t_b, stacked[0], arc).abs() <= s.inlier_mm
     inliers = (near & stacked[1]).sum(-1) / stacked[1].sum(-1)
     return R_b, t_b, inliers, inliers >= s.min_inliers
-
-
-def _strided(P: F64, most: int) -> F64:
-    """At most ``most`` of the points, evenly strided in their order."""
-    if len(P) <= most:
-        return P
-    return P[np.linspace(0, len(P) - 1, most).round().astype(np.int64)]
 
 
 def _first_best(cost: Tensor, roi: Tensor, n: int) -> Tensor:

@@ -43,6 +43,14 @@ def depth_points(uv: F64, depth: NDArray[np.floating], K: F64) -> F64:
     return np.stack([x, y, z], axis=1)
 
 
+def strided_points(P: F64, most: int) -> F64:
+    """At most ``most`` of the points ``P`` (N, D), evenly strided in their order (all of
+    them when there are no more)."""
+    if len(P) <= most:
+        return P
+    return P[np.linspace(0, len(P) - 1, most).round().astype(np.int64)]
+
+
 def stack_points(
     points: Sequence[NDArray[np.floating]], device: torch.device
 ) -> tuple[Tensor, Tensor]:
