@@ -329,6 +329,9 @@ class _Problem:
             ev.step[roi][:, None, None],
             ev.size[roi][:, None],
         )
+        # the evidence in single precision about its grid's origin, for the nearest-sample
+        # search alone (it only picks which segments the float64 distances are taken to)
+        self.points32 = (self.rows.points - self.rows.origin).float()
         self.depth = depth or DepthSettings()
         self.points = None
         if points is not None:
@@ -397,9 +400,12 @@ class _Problem:
         m = uv.shape[1]
         # nearest centre-line sample, then the closest point on its two adjacent segments:
         # O(N·M) small arithmetic instead of a point-to-every-segment distance. The sample
-        # minimises |uv|²/2 − e·uv (|e − uv|² less a per-point constant): one fused product
-        half = (0.5 * (uv * uv).sum(-1))[:, None, :]
-        k0 = torch.baddbmm(half, e, uv.transpose(1, 2), alpha=-1.0).argmin(-1)  # (B, N)
+        # minimises |uv|²/2 − e·uv (|e − uv|² less a per-point constant): one fused product,
+        # in single precision (a near tie between two samples picks the segment between them
+        # either way)
+        uv32 = (uv - self.rows.origin).float()
+        half = (0.5 * (uv32 * uv32).sum(-1))[:, None, :]
+        k0 = torch.baddbmm(half, self.points32, uv32.transpose(1, 2), alpha=-1.0).argmin(-1)
         seg = torch.stack([k0 - 1, k0], -1).clamp(0, m - 2)  # (B, N, 2) candidate segments
         # x and y apart: sums over an axis of two cost more than the arithmetic
         ux, uy = uv[..., 0], uv[..., 1]
