@@ -82,8 +82,10 @@ def _nearest_xy(x: Tensor, y: Tensor, arc: ArcModel) -> tuple[Tensor, Tensor]:
     # the circle's point at the point's angle (the tail for the plane's origin)
     ux, uy = torch.where(r_xy > 0, x * inv, 1.0), y * inv
     tip_nearer = x * c + y * s > x
-    ux = torch.where(off, torch.where(tip_nearer, c, 1.0), ux)
-    uy = torch.where(off, torch.where(tip_nearer, s, 0.0), uy)
+    # the ends as tensors of the points' dtype (a where of two Python floats is float32)
+    tip_x, tip_y, one, zero = (x.new_tensor(v) for v in (c, s, 1.0, 0.0))
+    ux = torch.where(off, torch.where(tip_nearer, tip_x, one), ux)
+    uy = torch.where(off, torch.where(tip_nearer, tip_y, zero), uy)
     return arc.radius * ux, arc.radius * uy
 
 

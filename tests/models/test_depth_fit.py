@@ -89,7 +89,7 @@ def test_nearest_arc_points_without_angles_match_the_angle_definition(arc_deg):
     rng = np.random.default_rng(5)
     q = np.concatenate([rng.normal(0, 12, (4000, 3)), [[0.0, 0.0, 2.0], [-3.0, 0.0, 0.0]]])
     got = nearest_arc_points(torch.as_tensor(q), arc).numpy()
-    np.testing.assert_allclose(got, _nearest_by_angle(q, arc), atol=1e-9)
+    np.testing.assert_allclose(got, _nearest_by_angle(q, arc), rtol=0, atol=1e-12)
 
 
 def test_model_frame_derivatives_give_the_camera_frames_normal_equations():
