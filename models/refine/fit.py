@@ -140,7 +140,8 @@ def _host_buffer(shape: tuple[int, ...]) -> Tensor:
     need = int(np.prod(shape))
     buf: Tensor | None = getattr(_HOST, "maps", None)
     if buf is None or buf.numel() < need:
-        buf = torch.empty(need, dtype=torch.float64)
+        with torch.inference_mode(False):  # a normal tensor: writable in and out of that mode
+            buf = torch.empty(need, dtype=torch.float64)
         _HOST.maps = buf
     return buf[:need].view(shape)
 

@@ -168,6 +168,22 @@ def test_the_tube_matches_the_rendered_wire_width():
     assert abs(np.median(sides)) < 0.35
 
 
+def test_the_reused_buffer_made_in_inference_mode_is_written_outside_it(monkeypatch):
+    """``bopsurg predict`` fits in inference mode, a caller may fit outside it afterwards (in
+    the same thread): the buffer must be a normal tensor, writable in both."""
+    from bopsurg.models.refine import fit
+
+    monkeypatch.setattr(fit._HOST, "maps", None, raising=False)  # made afresh below
+    ev = fit.Evidence.from_mask(
+        np.random.default_rng(3).uniform(size=(20, 20)) > 0.7, np.zeros(2), 1.0
+    )
+    cpu = torch.device("cpu")
+    with torch.inference_mode():
+        inside = fit.EvidenceBatch.stack([ev, ev], cpu, reuse=True).maps.clone()
+    outside = fit.EvidenceBatch.stack([ev], cpu, reuse=True).maps
+    torch.testing.assert_close(outside[:, 0], inside[:, 1])
+
+
 def test_the_evidence_gradients_are_numpys():
     from bopsurg.models.refine.fit import _gradient_xy
 
