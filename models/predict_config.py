@@ -206,6 +206,8 @@ class DepthSettings:
         mode: ``fit`` (use the depth image when ``bopsurg predict`` gives one) or ``none``.
         weight: Weight of the points' mean cost against the image terms' (px²-like).
         scale_mm: Cauchy scale of the point-to-wire distance, mm.
+        max_points: Most points of a needle the fit uses, evenly strided in the mask's scan
+            order (the fit to the points alone takes its own ``points.max_points`` of these).
         points: The fit to the points alone (one more start).
         unheld: Also fit without the pose head's prior (each start's prior on itself) and
             keep that fit where it puts ``unheld_share`` more of the points within
@@ -223,6 +225,7 @@ class DepthSettings:
     mode: Literal["fit", "none"] = "fit"
     weight: float = 16.0
     scale_mm: float = 0.5
+    max_points: int = 600
     points: PointsFitSettings = field(default_factory=PointsFitSettings)
     unheld: bool = False
     inlier_mm: float = 0.5

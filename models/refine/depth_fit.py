@@ -41,7 +41,13 @@ from bopsurg.models.predict_config import PointsFitSettings
 from bopsurg.models.refine.arc import ArcModel, exp_so3, mirror_pose, same_ends
 from bopsurg.models.refine.fit import cauchy
 from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
-from bopsurg.models.refine.wire3d import stack_points, wire_distances, wire_residuals
+from bopsurg.models.refine.wire3d import (
+    camera_normal_equations,
+    stack_points,
+    strided_points,
+    wire_distances,
+    wire_residuals_model,
+)
 from bopsurg.needle import fit_circle
 
 F64 = NDArray[np.float64]
@@ -122,10 +128,11 @@ def _lm(
     points, ok = P[0][roi], P[1][roi]
 
     def objective(pose: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
-        r, J = wire_residuals(pose[0], pose[1], points, arc)
+        r, J = wire_residuals_model(pose[0], pose[1], points, arc)
         r = r * ok
         rho, w = cauchy(r, s.scale)
-        return (rho * ok).sum(-1), *normal_equations(r, w * ok, J)
+        H, g = normal_equations(r, w * ok, J, by_row=True)
+        return (rho * ok).sum(-1), *camera_normal_equations(H, g, pose[0])
 
     def moved(pose: tuple[Tensor, ...], step: Tensor) -> tuple[Tensor, ...]:
         return exp_so3(step[:, :3]) @ pose[0], pose[1] + step[:, 3:]
@@ -177,7 +184,7 @@ def fit_depths(
     """
     s = settings or PointsFitSettings()
     R, t = np.asarray(R, float).reshape(-1, 3, 3), np.asarray(t, float).reshape(-1, 3)
-    pts = [_strided(np.asarray(p, float).reshape(-1, 3), s.max_points) for p in P]
+    pts = [strided_points(np.asarray(p, float).reshape(-1, 3), s.max_points) for p in P]
     out = DepthFits(
         R.copy(),
         t.copy(),
@@ -230,13 +237,6 @@ def _fit_rows(
     near = wire_distances(R_b, t_b, stacked[0], arc).abs() <= s.inlier_mm
     inliers = (near & stacked[1]).sum(-1) / stacked[1].sum(-1)
     return R_b, t_b, inliers, inliers >= s.min_inliers
-
-
-def _strided(P: F64, most: int) -> F64:
-    """At most ``most`` of the points, evenly strided in their order."""
-    if len(P) <= most:
-        return P
-    return P[np.linspace(0, len(P) - 1, most).round().astype(np.int64)]
 
 
 def _first_best(cost: Tensor, roi: Tensor, n: int) -> Tensor:

@@ -31,6 +31,7 @@ Units: mm, px; poses model-to-camera, ``x_cam = R x_model + t``.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -43,7 +44,11 @@ from torch import Tensor
 from bopsurg.models.predict_config import DepthSettings, FitSettings
 from bopsurg.models.refine.arc import ArcModel, exp_so3, log_so3, mirror_pose, same_ends
 from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
-from bopsurg.models.refine.wire3d import stack_points, wire_residuals
+from bopsurg.models.refine.wire3d import (
+    camera_normal_equations,
+    stack_points,
+    wire_residuals_model,
+)
 
 F64 = NDArray[np.float64]
 
@@ -111,14 +116,49 @@ class Evidence:
             inside = np.zeros(mask.shape)
         dist *= step
         sdf = dist - step * inside
-        gy, gx = np.gradient(dist, step)
-        sy, sx = np.gradient(sdf, step)
-        return cls(points, dist, np.stack([gx, gy]), origin, float(step), sdf, np.stack([sx, sy]))
+        return cls(
+            points,
+            dist,
+            _gradient_xy(dist, step),
+            origin,
+            float(step),
+            sdf,
+            _gradient_xy(sdf, step),
+        )
 
     @property
     def size(self) -> int:
         """Number of foreground pixels in the reverse term."""
         return int(self.points.shape[0])
+
+
+_HOST = threading.local()
+
+
+def _host_buffer(shape: tuple[int, ...]) -> Tensor:
+    """A float64 CPU tensor of ``shape`` on storage this thread reuses from call to call."""
+    need = int(np.prod(shape))
+    buf: Tensor | None = getattr(_HOST, "maps", None)
+    if buf is None or buf.numel() < need:
+        with torch.inference_mode(False):  # a normal tensor: writable in and out of that mode
+            buf = torch.empty(need, dtype=torch.float64)
+        _HOST.maps = buf
+    return buf[:need].view(shape)
+
+
+def _gradient_xy(f: F64, step: float) -> F64:
+    """d/dx and d/dy (2, S, S) of a grid ``f`` (S, S) whose pixels are ``step`` apart:
+    ``numpy.gradient``'s (central differences, one-sided at the borders) written into one
+    array instead of stacked from two."""
+    out = np.empty((2, *f.shape))
+    gx, gy = out
+    np.subtract(f[:, 2:], f[:, :-2], out=gx[:, 1:-1])
+    gx[:, 1:-1] /= 2.0 * step
+    gx[:, 0], gx[:, -1] = (f[:, 1] - f[:, 0]) / step, (f[:, -1] - f[:, -2]) / step
+    np.subtract(f[2:], f[:-2], out=gy[1:-1])
+    gy[1:-1] /= 2.0 * step
+    gy[0], gy[-1] = (f[1] - f[0]) / step, (f[-1] - f[-2]) / step
+    return out
 
 
 class EvidenceBatch(NamedTuple):
@@ -144,13 +184,23 @@ class EvidenceBatch(NamedTuple):
     step: Tensor
 
     @classmethod
-    def stack(cls, evidence: Sequence[Evidence], device: torch.device) -> EvidenceBatch:
-        """The ROIs' evidence on ``device``."""
+    def stack(
+        cls, evidence: Sequence[Evidence], device: torch.device, reuse: bool = False
+    ) -> EvidenceBatch:
+        """The ROIs' evidence on ``device``.
+
+        ``reuse``: on the CPU, the maps go into a buffer this thread keeps for the next
+        call's (so they hold only until this thread's next ``stack`` with ``reuse``): they
+        are tens of megabytes, and memory that size is fresh pages from the OS at every
+        allocation, whose first touch costs more than the copy into them."""
         points, valid = stack_points([e.points for e in evidence], device)
         side = max([1, *(e.dist.shape[-1] for e in evidence)])
-        maps = torch.zeros((6, len(evidence), side, side), dtype=torch.float64)
+        shape = (6, len(evidence), side, side)
+        on_host = reuse and device.type == "cpu"
+        maps = _host_buffer(shape) if on_host else torch.empty(shape, dtype=torch.float64)
         for i, e in enumerate(evidence):  # preparation: a copy per ROI, once per fit
             s = e.dist.shape[-1]
+            maps[:, i, s:], maps[:, i, :s, s:] = 0.0, 0.0  # a smaller grid's padding
             for c, plane in enumerate((e.dist, *e.grad, e.sdf, *e.sdf_grad)):
                 maps[c, i, :s, :s] = torch.from_numpy(np.ascontiguousarray(plane, np.float64))
 
@@ -280,6 +330,9 @@ class _Problem:
             ev.step[roi][:, None, None],
             ev.size[roi][:, None],
         )
+        # the evidence in single precision about its grid's origin, for the nearest-sample
+        # search alone (it only picks which segments the float64 distances are taken to)
+        self.points32 = (self.rows.points - self.rows.origin).float()
         self.depth = depth or DepthSettings()
         self.points = None
         if points is not None:
@@ -347,26 +400,39 @@ class _Problem:
         e = self.rows.points  # (B, N, 2)
         m = uv.shape[1]
         # nearest centre-line sample, then the closest point on its two adjacent segments:
-        # O(N·M) small arithmetic instead of a point-to-every-segment distance
-        d2s = (e**2).sum(-1)[..., None] + (uv**2).sum(-1)[:, None, :] - 2.0 * e @ uv.transpose(1, 2)
-        k0 = d2s.argmin(-1)  # (B, N)
+        # O(N·M) small arithmetic instead of a point-to-every-segment distance. The sample
+        # minimises |uv|²/2 − e·uv (|e − uv|² less a per-point constant): one fused product,
+        # in single precision (a near tie between two samples picks the segment between them
+        # either way)
+        uv32 = (uv - self.rows.origin).float()
+        half = (0.5 * (uv32 * uv32).sum(-1))[:, None, :]
+        k0 = torch.baddbmm(half, self.points32, uv32.transpose(1, 2), alpha=-1.0).argmin(-1)
         seg = torch.stack([k0 - 1, k0], -1).clamp(0, m - 2)  # (B, N, 2) candidate segments
-        a, b = _take(uv, seg), _take(uv, seg + 1)  # (B, N, 2, 2)
-        ab = b - a
-        tau, diff = _on_segments(e[:, :, None, :], a, ab)
-        d2 = (diff**2).sum(-1)
-        pick = d2.argmin(-1, keepdim=True)  # (B, N, 1)
-        d_line = torch.sqrt(torch.gather(d2, -1, pick)[..., 0])
-        k = torch.gather(seg, -1, pick)[..., 0]  # (B, N) chosen segment
-        tk = torch.gather(tau, -1, pick)  # (B, N, 1)
+        # x and y apart: sums over an axis of two cost more than the arithmetic
+        ux, uy = uv[..., 0], uv[..., 1]
+        flat = seg.reshape(len(seg), -1)
+        ax, ay = (torch.gather(c, 1, flat).reshape(seg.shape) for c in (ux, uy))
+        bx, by = (torch.gather(c, 1, flat + 1).reshape(seg.shape) for c in (ux, uy))
+        abx, aby = bx - ax, by - ay
+        apx, apy = e[..., 0:1] - ax, e[..., 1:2] - ay
+        tau = ((apx * abx + apy * aby) / (abx * abx + aby * aby).clamp(min=1e-12)).clamp(0.0, 1.0)
+        dx, dy = apx - tau * abx, apy - tau * aby
+        d2 = dx * dx + dy * dy  # (B, N, 2)
+        second = d2[..., 1] < d2[..., 0]  # the first of equals, as argmin
+
+        def pick(x: Tensor) -> Tensor:
+            return torch.where(second, x[..., 1], x[..., 0])
+
+        d_line = torch.sqrt(pick(d2))
+        k = pick(seg)  # (B, N) chosen segment
+        tk = pick(tau)[..., None]  # (B, N, 1)
         rho_c = (1 - tk[..., 0]) * torch.gather(rho, 1, k) + tk[..., 0] * torch.gather(
             rho, 1, k + 1
         )
         # zero inside the tube, and for padding
         d_rev = (d_line - rho_c).clamp(min=0.0) * self.rows.valid
-        pick2 = pick[..., None].expand(-1, -1, 1, 2)
-        dv = torch.gather(diff, 2, pick2)[:, :, 0]  # e − c, (B, N, 2)
-        sv = torch.gather(ab, 2, pick2)[:, :, 0]
+        dv = torch.stack([pick(dx), pick(dy)], -1)  # e − c, (B, N, 2)
+        sv = torch.stack([pick(abx), pick(aby)], -1)
         return _Nearest(d_rev, d_line, dv, sv, k, tk)
 
     def _sides(self, uv: Tensor, rho: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -435,17 +501,19 @@ class _Problem:
             (d_fwd, s.forward_weight * w_f / m, J_fwd),
             (d_side, w_side, J_side),
         ]
-        if self.points is not None:
-            P, ok, count = self.points
-            r_d, J_d = wire_residuals(R, t, P, self.arc)
-            r_d = r_d * ok
-            rho_d, w_d = cauchy(r_d, self.depth.scale_mm)
-            cost = cost + self.depth.weight * (rho_d * ok).sum(-1) / count
-            terms.append((r_d, self.depth.weight * w_d * ok / count[:, None], J_d))
         H, g = normal_equations(*terms[0])
         for term in terms[1:]:
             H_k, g_k = normal_equations(*term)
             H, g = H + H_k, g + g_k
+        if self.points is not None:
+            P, ok, count = self.points
+            r_d, J_d = wire_residuals_model(R, t, P, self.arc)
+            r_d = r_d * ok
+            rho_d, w_d = cauchy(r_d, self.depth.scale_mm)
+            cost = cost + self.depth.weight * (rho_d * ok).sum(-1) / count
+            w_d = self.depth.weight * w_d * ok / count[:, None]
+            H_d, g_d = camera_normal_equations(*normal_equations(r_d, w_d, J_d, by_row=True), R)
+            H, g = H + H_d, g + g_d
         return cost, H, g, torch.cat([near.d_rev, d_fwd, d_side], 1)
 
 
@@ -599,7 +667,8 @@ def _fit_batch(
     x_prior = torch.where(held, x_prior, 0.0)
     with_points = [p if p is not None else np.zeros((0, 3)) for p in points]
     stacked = stack_points(with_points, device) if any(p is not None for p in points) else None
-    prob = _Problem(arc, EvidenceBatch.stack(evidence, device), K, s, roi, stacked, depth)
+    ev = EvidenceBatch.stack(evidence, device, reuse=True)  # used only in this call
+    prob = _Problem(arc, ev, K, s, roi, stacked, depth)
     sigma = np.array([np.deg2rad(s.prior_deg)] * 3 + list(s.prior_mm), float)
     sq = torch.as_tensor(np.sqrt(s.prior_weight) / sigma, device=device)
     prior_H = torch.diag(sq**2)

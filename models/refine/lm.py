@@ -29,11 +29,19 @@ State = TypeVar("State", Tensor, tuple[Tensor, ...])
 Evaluation = tuple[Tensor, Tensor, Tensor]
 
 
-def normal_equations(r: Tensor, w: Tensor, J: Tensor) -> tuple[Tensor, Tensor]:  # noqa: N803
+def normal_equations(
+    r: Tensor,
+    w: Tensor,
+    J: Tensor,  # noqa: N803
+    *,
+    by_row: bool = False,
+) -> tuple[Tensor, Tensor]:
     """JᵀWJ (B, 6, 6) and JᵀWr (B, 6) of residuals ``r`` (B, M), IRLS weights ``w`` (B, M)
-    and Jacobian ``J`` (B, M, 6)."""
-    JtW = J.transpose(1, 2) * w[:, None, :]
-    return JtW @ J, (JtW @ r[..., None])[..., 0]
+    and Jacobian ``J`` (B, M, 6), or (B, 6, M) with ``by_row`` (the faster layout: both
+    products then run along contiguous rows)."""
+    Jt = J if by_row else J.transpose(1, 2)
+    JtW = Jt * w[:, None, :]
+    return JtW @ Jt.transpose(1, 2), (JtW * r[:, None, :]).sum(-1)
 
 
 def levenberg_marquardt(

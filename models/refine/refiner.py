@@ -29,7 +29,12 @@ from bopsurg.models.refine.arc import ArcModel
 from bopsurg.models.refine.depth_fit import fit_depths
 from bopsurg.models.refine.fit import Evidence, FitResults, Starts, refine_poses
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
-from bopsurg.models.refine.wire3d import depth_points, stack_points, wire_distances
+from bopsurg.models.refine.wire3d import (
+    depth_points,
+    stack_points,
+    strided_points,
+    wire_distances,
+)
 
 #: The fit's evidence from a segmenter: ``full`` (the default when the segmenter predicts the
 #: full, amodal mask: the arc may lie on the full mask, the pixels it must explain are the
@@ -282,7 +287,7 @@ class NeedleRefiner:
             if d is not None:
                 rows, cols = np.nonzero(visible)
                 uv = ev.origin + ev.step * np.stack([cols, rows], 1)
-                points.append(depth_points(uv, d, Ks[i]))
+                points.append(strided_points(depth_points(uv, d, Ks[i]), self.depth.max_points))
             else:
                 points.append(None)
         with_depth = np.array([p is not None for p in points], bool)

@@ -43,6 +43,14 @@ def depth_points(uv: F64, depth: NDArray[np.floating], K: F64) -> F64:
     return np.stack([x, y, z], axis=1)
 
 
+def strided_points(P: F64, most: int) -> F64:
+    """At most ``most`` of the points ``P`` (N, D), evenly strided in their order (all of
+    them when there are no more)."""
+    if len(P) <= most:
+        return P
+    return P[np.linspace(0, len(P) - 1, most).round().astype(np.int64)]
+
+
 def stack_points(
     points: Sequence[NDArray[np.floating]], device: torch.device
 ) -> tuple[Tensor, Tensor]:
@@ -57,41 +65,77 @@ def stack_points(
     return torch.as_tensor(out, device=device), torch.as_tensor(valid, device=device)
 
 
+def _nearest_xy(x: Tensor, y: Tensor, arc: ArcModel) -> tuple[Tensor, Tensor]:
+    """The centre line's point (x, y) nearest to model points with plane coordinates ``x``,
+    ``y`` (any shape), mm: the circle's point at the same angle, or the nearer end where that
+    angle lies off the arc.
+
+    No angle is computed (this runs on every depth point at every step): the angle lies on
+    the arc where the point is not behind the tail (y ≥ 0) and not past the tip (tip × point
+    ≥ 0), both for an arc up to a half turn, either for a longer one; the nearer end is the
+    one with the larger dot product with the point."""
+    c, s = float(np.cos(arc.arc_rad)), float(np.sin(arc.arc_rad))
+    behind_tail, past_tip = y < 0, x * s - y * c < 0
+    off = behind_tail | past_tip if arc.arc_rad <= np.pi else behind_tail & past_tip
+    r_xy = torch.sqrt(x * x + y * y)
+    inv = 1.0 / r_xy.clamp(min=1e-300)
+    # the circle's point at the point's angle (the tail for the plane's origin)
+    ux, uy = torch.where(r_xy > 0, x * inv, 1.0), y * inv
+    tip_nearer = x * c + y * s > x
+    # the ends as tensors of the points' dtype (a where of two Python floats is float32)
+    tip_x, tip_y, one, zero = (x.new_tensor(v) for v in (c, s, 1.0, 0.0))
+    ux = torch.where(off, torch.where(tip_nearer, tip_x, one), ux)
+    uy = torch.where(off, torch.where(tip_nearer, tip_y, zero), uy)
+    return arc.radius * ux, arc.radius * uy
+
+
 def nearest_arc_points(q: Tensor, arc: ArcModel) -> Tensor:
     """The centre-line points (..., 3), model frame, nearest to model points ``q`` (..., 3):
     the circle's point at the same angle, or the nearer end where that angle lies off the
     arc."""
-    a = torch.remainder(torch.atan2(q[..., 1], q[..., 0]), 2 * np.pi)
-    # the circle's point at angle a is the radius along q's direction in the plane (no
-    # trigonometry per point: this runs on every depth point at every step)
-    xy = q[..., :2]
-    r_xy = torch.linalg.vector_norm(xy, dim=-1, keepdim=True)
-    tail = torch.tensor([1.0, 0.0], dtype=q.dtype, device=q.device)
-    on_circle = torch.where(r_xy > 0, xy / r_xy.clamp(min=1e-300), tail)
-    tip = torch.tensor([np.cos(arc.arc_rad), np.sin(arc.arc_rad)], dtype=q.dtype, device=q.device)
-    end = torch.where((a - arc.arc_rad < 2 * np.pi - a)[..., None], tip, tail)
-    out: Tensor = torch.cat(
-        [arc.radius * torch.where((a <= arc.arc_rad)[..., None], on_circle, end), 0.0 * q[..., 2:]],
-        -1,
-    )
-    return out
+    cx, cy = _nearest_xy(q[..., 0], q[..., 1], arc)
+    return torch.stack([cx, cy, torch.zeros_like(cx)], -1)
+
+
+def _model_points(R: Tensor, t: Tensor, P: Tensor) -> Tensor:
+    """Camera points ``P`` (B, N, 3) in the model frames of poses ``R``, ``t``: R^T (P - t)."""
+    return (P - t[:, None]) @ R
 
 
 def wire_distances(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> Tensor:
     """Distances (B, N), mm, of camera points ``P`` (B, N, 3) to the wire's surface (the
     centre line's distance less ``wire_radius``; negative inside) at poses ``R`` (B, 3, 3),
     ``t`` (B, 3)."""
-    diff, _ = _offsets(R, t, P, arc)
-    out: Tensor = torch.linalg.vector_norm(diff, dim=-1) - arc.wire_radius
+    q = _model_points(R, t, P)
+    cx, cy = _nearest_xy(q[..., 0], q[..., 1], arc)
+    dx, dy, dz = q[..., 0] - cx, q[..., 1] - cy, q[..., 2]
+    out: Tensor = torch.sqrt(dx * dx + dy * dy + dz * dz) - arc.wire_radius
     return out
 
 
-def _offsets(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> tuple[Tensor, Tensor]:
-    """Model-frame offsets (B, N, 3) of the points from their nearest centre-line points, and
-    those points (B, N, 3), mm, at each pose."""
-    q = (P - t[:, None]) @ R  # R^T (P - t), model frame
-    c = nearest_arc_points(q, arc)
-    return q - c, c
+def wire_residuals_model(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> tuple[Tensor, Tensor]:
+    """:func:`wire_residuals` with the derivatives in the model frame, by row: (B, 6, N),
+    ``J_cam = blockdiag(R, R) · J_model`` per point (:func:`camera_normal_equations` turns
+    their normal equations to the camera's: a 6×6 product instead of one per point)."""
+    q = _model_points(R, t, P)
+    qx, qy, qz = q.unbind(-1)
+    cx, cy = _nearest_xy(qx, qy, arc)
+    dx, dy = qx - cx, qy - cy
+    dist = torch.sqrt(dx * dx + dy * dy + qz * qz)
+    inv = 1.0 / dist.clamp(min=1e-9)
+    nx, ny, nz = dx * inv, dy * inv, qz * inv  # u in the model frame: u = R n
+    # u × (R c) = R (n × c), with c_z = 0; d/dδt = −u
+    J = torch.stack([-nz * cy, nz * cx, nx * cy - ny * cx, -nx, -ny, -nz], 1)
+    return dist - arc.wire_radius, J
+
+
+def camera_normal_equations(H: Tensor, g: Tensor, R: Tensor) -> tuple[Tensor, Tensor]:  # noqa: N803
+    """Normal equations (B, 6, 6), (B, 6) of model-frame derivatives
+    (:func:`wire_residuals_model`) turned to the camera's: D H Dᵀ, D g with D = blockdiag(R, R)."""
+    b = len(R)
+    D = torch.zeros((b, 6, 6), dtype=R.dtype, device=R.device)
+    D[:, :3, :3], D[:, 3:, 3:] = R, R
+    return D @ H @ D.transpose(1, 2), (D @ g[..., None])[..., 0]
 
 
 def wire_residuals(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> tuple[Tensor, Tensor]:
@@ -102,12 +146,7 @@ def wire_residuals(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> tuple[Tens
     A point's residual moves with the centre line's nearest point c (camera frame): by
     ``(u × R c)·ω − u·δt`` with u the unit direction from c to the point (the nearest point's
     arc parameter is stationary, so its own change does not enter)."""
-    diff, c = _offsets(R, t, P, arc)
-    dist = torch.linalg.vector_norm(diff, dim=-1)
-    n = diff / dist.clamp(min=1e-9)[..., None]  # u in the model frame: u = R n
-    # u × (R c) = R (n × c), with c_z = 0; both halves of J rotate by R in one product
-    nx, ny, nz = n.unbind(-1)
-    n_c = torch.stack([-nz * c[..., 1], nz * c[..., 0], nx * c[..., 1] - ny * c[..., 0]], -1)
+    r, J = wire_residuals_model(R, t, P, arc)
     b, m = P.shape[:2]
-    J = (torch.stack([n_c, -n], -2).reshape(b, 2 * m, 3) @ R.transpose(1, 2)).reshape(b, m, 6)
-    return dist - arc.wire_radius, J
+    J_cam = (J.transpose(1, 2).reshape(b, 2 * m, 3) @ R.transpose(1, 2)).reshape(b, m, 6)
+    return r, J_cam

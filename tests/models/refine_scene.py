@@ -4,7 +4,7 @@ surface point per pixel the depth image), and pose-head starts off by known amou
 
 The batched fit's reference outputs (``data/refine_reference.json``) were captured on this
 scene from the per-ROI numpy fit it replaced; :func:`variants` names the settings each was
-captured with."""
+captured with (every depth point: that fit had no cap on them)."""
 
 from __future__ import annotations
 
@@ -111,10 +111,14 @@ def scene() -> Scene:
     return Scene(visible, full, depth, np.array(boxes, float), R, t, R0, t0)
 
 
+#: ``DepthSettings.max_points`` that keeps every point of the scene (the reference fit's).
+ALL_POINTS = 10**9
+
+
 def variants() -> dict[str, tuple[FitSettings, DepthSettings, bool, bool]]:
     """Named (fit, depth settings, with depth, two mask planes) of the reference outputs."""
-    fit, dep = FitSettings(), DepthSettings()
-    unheld = DepthSettings(unheld=True)
+    fit, dep = FitSettings(), DepthSettings(max_points=ALL_POINTS)
+    unheld = DepthSettings(unheld=True, max_points=ALL_POINTS)
     return {
         "rgb": (fit, dep, False, False),
         "rgbd": (fit, dep, True, False),

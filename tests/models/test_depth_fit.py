@@ -10,9 +10,17 @@ torch = pytest.importorskip("torch")
 
 from bopsurg import metrics  # noqa: E402
 from bopsurg.models.predict_config import PointsFitSettings  # noqa: E402
-from bopsurg.models.refine.arc import ArcModel, half_turn  # noqa: E402
+from bopsurg.models.refine.arc import ArcModel, exp_so3, half_turn  # noqa: E402
 from bopsurg.models.refine.depth_fit import fit_depth  # noqa: E402
-from bopsurg.models.refine.wire3d import depth_points, nearest_arc_points, wire_distances  # noqa: E402
+from bopsurg.models.refine.lm import normal_equations  # noqa: E402
+from bopsurg.models.refine.wire3d import (  # noqa: E402
+    camera_normal_equations,
+    depth_points,
+    nearest_arc_points,
+    wire_distances,
+    wire_residuals,
+    wire_residuals_model,
+)
 
 ARC = ArcModel()
 K = np.array([[350.807, 0.0, 320.0], [0.0, 350.807, 240.0], [0.0, 0.0, 1.0]])
@@ -62,6 +70,49 @@ def test_nearest_arc_points_clamp_to_the_nearer_end():
     np.testing.assert_allclose(c[0], [r * np.cos(a / 2), r * np.sin(a / 2), 0], atol=1e-12)
     np.testing.assert_allclose(c[1], [r * np.cos(a), r * np.sin(a), 0], atol=1e-12)
     np.testing.assert_allclose(c[2], [r, 0, 0], atol=1e-12)
+
+
+def _nearest_by_angle(q: np.ndarray, arc: ArcModel) -> np.ndarray:
+    """The definition, worked with angles: the circle's point at the point's angle on the arc,
+    else the end nearer in angle (past the tip, or before the tail going round)."""
+    a = np.mod(np.arctan2(q[:, 1], q[:, 0]), 2 * np.pi)
+    end = np.where(a - arc.arc_rad < 2 * np.pi - a, arc.arc_rad, 0.0)
+    ang = np.where(a <= arc.arc_rad, a, end)
+    return arc.radius * np.stack([np.cos(ang), np.sin(ang), np.zeros(len(q))], 1)
+
+
+@pytest.mark.parametrize("arc_deg", [128.5, 180.0, 250.0])
+def test_nearest_arc_points_without_angles_match_the_angle_definition(arc_deg):
+    """The cross and dot tests give the angles' answer for arcs shorter and longer than a
+    half turn, on points all round the plane (both ends, behind the centre)."""
+    arc = ArcModel(radius=10.0, arc_rad=float(np.deg2rad(arc_deg)))
+    rng = np.random.default_rng(5)
+    q = np.concatenate([rng.normal(0, 12, (4000, 3)), [[0.0, 0.0, 2.0], [-3.0, 0.0, 0.0]]])
+    got = nearest_arc_points(torch.as_tensor(q), arc).numpy()
+    np.testing.assert_allclose(got, _nearest_by_angle(q, arc), rtol=0, atol=1e-12)
+
+
+def test_model_frame_derivatives_give_the_camera_frames_normal_equations():
+    rng = np.random.default_rng(6)
+    R = torch.as_tensor(Rotation.random(2, random_state=2).as_matrix())
+    t = torch.as_tensor([[1.0, -2.0, 60.0], [0.0, 3.0, 80.0]])
+    P = t[:, None] + torch.as_tensor(rng.normal(0, 8, (2, 50, 3)))
+    w = torch.as_tensor(rng.uniform(0.1, 1.0, (2, 50)))
+    r_cam, J_cam = wire_residuals(R, t, P, ARC)
+    r, J = wire_residuals_model(R, t, P, ARC)
+    torch.testing.assert_close(r, r_cam)
+    H, g = camera_normal_equations(*normal_equations(r, w, J, by_row=True), R)
+    H_cam, g_cam = normal_equations(r_cam, w, J_cam)
+    torch.testing.assert_close(H, H_cam, atol=1e-9, rtol=1e-12)
+    torch.testing.assert_close(g, g_cam, atol=1e-9, rtol=1e-12)
+    # and the camera frame's derivatives are the residuals' (central differences)
+    step = 1e-6
+    for k in range(6):
+        d = torch.zeros(2, 6, dtype=torch.float64)
+        d[:, k] = step
+        r_hi = wire_residuals(exp_so3(d[:, :3]) @ R, t + d[:, 3:], P, ARC)[0]
+        r_lo = wire_residuals(exp_so3(-d[:, :3]) @ R, t - d[:, 3:], P, ARC)[0]
+        torch.testing.assert_close((r_hi - r_lo) / (2 * step), J_cam[..., k], atol=1e-5, rtol=0)
 
 
 def test_surface_points_lie_on_the_wire_at_the_true_pose():

@@ -168,6 +168,50 @@ def test_the_tube_matches_the_rendered_wire_width():
     assert abs(np.median(sides)) < 0.35
 
 
+def test_the_reused_buffer_made_in_inference_mode_is_written_outside_it(monkeypatch):
+    """``bopsurg predict`` fits in inference mode, a caller may fit outside it afterwards (in
+    the same thread): the buffer must be a normal tensor, writable in both."""
+    from bopsurg.models.refine import fit
+
+    monkeypatch.setattr(fit._HOST, "maps", None, raising=False)  # made afresh below
+    ev = fit.Evidence.from_mask(
+        np.random.default_rng(3).uniform(size=(20, 20)) > 0.7, np.zeros(2), 1.0
+    )
+    cpu = torch.device("cpu")
+    with torch.inference_mode():
+        inside = fit.EvidenceBatch.stack([ev, ev], cpu, reuse=True).maps.clone()
+    outside = fit.EvidenceBatch.stack([ev], cpu, reuse=True).maps
+    torch.testing.assert_close(outside[:, 0], inside[:, 1])
+
+
+def test_the_evidence_gradients_are_numpys():
+    from bopsurg.models.refine.fit import _gradient_xy
+
+    f = np.random.default_rng(9).normal(size=(7, 7))
+    gy, gx = np.gradient(f, 0.37)
+    g = _gradient_xy(f, 0.37)
+    np.testing.assert_array_equal(g[0], gx)
+    np.testing.assert_array_equal(g[1], gy)
+
+
+def test_stacked_maps_in_the_reused_buffer_equal_fresh_ones_with_zero_padding():
+    """The fit's maps go into a buffer kept between fits: a stack after one of other grids
+    (which left other values there) holds each grid and zeros in a smaller grid's padding."""
+    from bopsurg.models.refine.fit import Evidence, EvidenceBatch
+
+    rng = np.random.default_rng(8)
+    big = Evidence.from_mask(rng.uniform(size=(40, 40)) > 0.7, np.zeros(2), 1.0)
+    small = Evidence.from_mask(rng.uniform(size=(24, 24)) > 0.7, np.ones(2), 0.5)
+    cpu = torch.device("cpu")
+    EvidenceBatch.stack([big, big, big], cpu, reuse=True)  # fills the buffer with values
+    reused = EvidenceBatch.stack([big, small], cpu, reuse=True).maps.clone()
+    fresh = EvidenceBatch.stack([big, small], cpu).maps
+    torch.testing.assert_close(reused, fresh, atol=0, rtol=0)
+    assert not reused[:, 1, 24:].any()
+    assert not reused[:, 1, :, 24:].any()
+    torch.testing.assert_close(reused[0, 1, :24, :24], torch.as_tensor(small.dist))
+
+
 @pytest.mark.parametrize(("view_deg", "hidden"), [(30.0, 0.3), (60.0, 0.5)])
 def test_an_occluded_arc_does_not_pull_the_fit_off_the_true_pose(view_deg, hidden):
     # started at the truth, the default fit stays there (measured at most 0.53 mm / 2.9°: with
