@@ -35,10 +35,12 @@ from bopsurg.bop.targets import Target
 from bopsurg.errors import BopsurgError
 from bopsurg.evaluation import bop19
 from bopsurg.evaluation.ambiguity import AMBIGUITY_COLUMNS, ambiguity_splits, instance_ambiguity
+from bopsurg.evaluation.bop19_pairs import kept_pairs_of_targets
 from bopsurg.evaluation.matching import greedy_match
 from bopsurg.evaluation.pair_errors import ModelCache, candidate_pairs, pair_errors
 from bopsurg.evaluation.summary import paper_summary
 from bopsurg.evaluation.tables import GtTable, estimates_frame, load_gt_table, rank_within_groups
+from bopsurg.evaluation.vsd_pairs import PendingVsd, StartedVsd, VsdInputs, start_vsd
 from bopsurg.metrics.registry import METRICS
 from bopsurg.plugins import DepthRenderer, load_plugin
 
@@ -147,6 +149,7 @@ def evaluate(
     instance_metrics: Sequence[str] | None = None,
     scene_ids: Sequence[int] | None = None,
     progress: bool = False,
+    started: StartedVsd | None = None,
 ) -> Evaluation:
     """Evaluate pose estimates on a BOP dataset split.
 
@@ -164,6 +167,9 @@ def evaluate(
             empty).
         scene_ids: Evaluate only these scenes (their GT, estimates and targets).
         progress: Show progress bars.
+        started: VSD already started on these estimates and targets with ``renderer``
+            (:func:`~bopsurg.evaluation.vsd_pairs.start_vsd_early`, maybe on a worker
+            process); its GT table and pairs are used.
 
     Returns:
         The :class:`Evaluation`.
@@ -174,22 +180,37 @@ def evaluate(
     if unknown:
         raise BopsurgError(f"unknown metric(s) {sorted(unknown)}; choose from {', '.join(METRICS)}")
     models = ModelCache(dataset, max_sym_disc_step)
-    gt = load_gt_table(dataset, scene_ids)
     if targets is None:
         targets = dataset.targets()
-    if scene_ids is not None:
-        keep = set(scene_ids)
-        targets = [t for t in targets if t.scene_id in keep]
-        estimates = estimates.subset(np.isin(estimates.scene_id, sorted(keep)))
+    vsd_inputs = None if renderer is None else VsdInputs(dataset, renderer, vsd_delta, progress)
+    if started is not None:  # VSD already under way: its GT table and pairs are ours
+        if scene_ids is not None:
+            raise BopsurgError("VSD started early evaluates the whole split, not scene_ids")
+        gt, kept, vsd_inputs = started.gt, started.kept, started.inputs
+        pending: PendingVsd | None = started.errors
+    else:
+        gt = load_gt_table(dataset, scene_ids)
+        if scene_ids is not None:
+            keep = set(scene_ids)
+            targets = [t for t in targets if t.scene_id in keep]
+            estimates = estimates.subset(np.isin(estimates.scene_id, sorted(keep)))
+        kept = kept_pairs_of_targets(estimates, gt, targets, models.diameters)
+        pending = None if vsd_inputs is None else start_vsd(estimates, gt, kept, vsd_inputs)
     errors, gt_rows, pair_mssd = _instance_matching(estimates, gt, models, instance_metrics)
     amb = instance_ambiguity(dataset, gt_rows, gt.R, gt.t, gt.K)
     gt_rows = gt_rows.join(amb)
     # errors.csv rows carry the ambiguity of the GT they were matched to
     key = ["scene_id", "im_id", "obj_id", "gt_id"]
     errors = errors.merge(gt_rows[[*key, *amb.columns]], on=key, how="left")
-    vsd = None if renderer is None else bop19.VsdInputs(dataset, renderer, vsd_delta, progress)
     curves = bop19.recall_curves(
-        estimates, gt, targets, models, pair_mssd=pair_mssd, vsd_inputs=vsd
+        estimates,
+        gt,
+        targets,
+        models,
+        pair_mssd=pair_mssd,
+        vsd_inputs=vsd_inputs,
+        kept=kept,
+        vsd=pending,
     )
     return _assemble(errors, gt_rows, curves, estimates, min_visib)
 
