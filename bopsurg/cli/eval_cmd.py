@@ -291,11 +291,11 @@ def _evaluate_and_write(
 ) -> int:
     """The evaluation, its outputs and what it prints, once the inputs are loaded."""
     from bopsurg._version import __version__
-    from bopsurg.cli.eval_stats import write_intervals
+    from bopsurg.cli.eval_stats import early_intervals, write_intervals
     from bopsurg.evaluation.device import metric_device
-    from bopsurg.evaluation.runner import evaluate, evaluate_distributed, write_evaluation
+    from bopsurg.evaluation.runner import begin_evaluation, evaluate_distributed, write_evaluation
     from bopsurg.evaluation.summary import format_table
-    from bopsurg.evaluation.tasks import add_detection_scores
+    from bopsurg.evaluation.tasks import detection_evaluation, merge_task_scores
 
     tasks, dataset, est, targets = inputs.tasks, inputs.dataset, inputs.est, inputs.targets
     options = {
@@ -303,9 +303,10 @@ def _evaluate_and_write(
         "vsd_delta": dataset.vsd_delta_mm if args.vsd_delta is None else args.vsd_delta,
         "instance_metrics": [m.strip() for m in args.metrics.split(",") if m.strip()],
     }
+    early = None
     with metric_device(args.device):  # MSSD, MSPD, ADD on the CPU or a GPU
         if executor is None:
-            result = evaluate(
+            in_progress = begin_evaluation(
                 dataset,
                 est,
                 targets=targets,
@@ -314,6 +315,10 @@ def _evaluate_and_write(
                 started=started,
                 **options,
             )
+            # while VSD renders on its worker: BOP24 and the intervals that need no VSD
+            det = detection_evaluation(tasks, dataset, est, inputs.image_targets)
+            early = early_intervals(in_progress.gt_rows, det, args, in_progress.min_visib)
+            result = in_progress.finish()
         else:  # scenes in parallel: each worker loads the renderer plugin itself
             result = evaluate_distributed(
                 dataset,
@@ -324,7 +329,8 @@ def _evaluate_and_write(
                 progress=not args.no_progress,
                 **options,
             )
-    det = add_detection_scores(result.scores, tasks, dataset, est, inputs.image_targets)
+            det = detection_evaluation(tasks, dataset, est, inputs.image_targets)
+        merge_task_scores(result.scores, tasks, det)
     meta: dict[str, object] = {
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),
@@ -334,7 +340,7 @@ def _evaluate_and_write(
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
     curves = result.curves if "bop19" in tasks else None  # BOP19 keys only with its task
-    write_intervals(result.gt_rows, det, args, curves)  # intervals, compare's samples
+    write_intervals(result.gt_rows, det, args, curves, early)  # intervals, compare's samples
     if args.figures:
         from bopsurg.viz.figures import figures_of_evaluation
 
