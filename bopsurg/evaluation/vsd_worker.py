@@ -17,6 +17,7 @@ import json
 import logging
 import os
 import pickle
+import signal
 import subprocess
 import sys
 import threading
@@ -158,6 +159,7 @@ def serve(renderer_name: str) -> None:
     it cannot corrupt a reply, and so is what the plugin prints on stderr while it loads
     (pybullet's banner, which the caller has printed already).
     """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the caller's: it ends this
     replies = os.fdopen(os.dup(1), "wb")
     stderr = os.dup(2)
     devnull = os.open(os.devnull, os.O_WRONLY)
