@@ -265,8 +265,7 @@ def _start_vsd(
     dataset = inputs.dataset
     name = _renderer_name(renderer)
     worker = VsdWorker.start(name) if name is not None else None
-    delta = dataset.vsd_delta_mm if args.vsd_delta is None else args.vsd_delta
-    vsd = VsdInputs(dataset, renderer, delta, not args.no_progress, worker)
+    vsd = VsdInputs(dataset, renderer, _vsd_delta(args, dataset), not args.no_progress, worker)
     try:
         started = start_vsd_early(
             inputs.est,
@@ -279,6 +278,12 @@ def _start_vsd(
             worker.close()
         raise
     return started, worker
+
+
+def _vsd_delta(args: argparse.Namespace, dataset: BopDataset) -> float:
+    """VSD's δ, mm: ``--vsd-delta``, else the dataset's."""
+    delta: float = dataset.vsd_delta_mm if args.vsd_delta is None else args.vsd_delta
+    return delta
 
 
 def _evaluate_and_write(
@@ -300,7 +305,7 @@ def _evaluate_and_write(
     tasks, dataset, est, targets = inputs.tasks, inputs.dataset, inputs.est, inputs.targets
     options = {
         "min_visib": args.min_visib,
-        "vsd_delta": dataset.vsd_delta_mm if args.vsd_delta is None else args.vsd_delta,
+        "vsd_delta": _vsd_delta(args, dataset),
         "instance_metrics": [m.strip() for m in args.metrics.split(",") if m.strip()],
     }
     early = None
