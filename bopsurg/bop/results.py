@@ -17,16 +17,18 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from bopsurg.atomic import write_bytes
 from bopsurg.bop.files import decode_utf8, read_bytes
 from bopsurg.errors import ResultsError, ShapeError
 from bopsurg.geometry import ROTATION_ATOL, is_rotation
+
+if TYPE_CHECKING:  # pandas only for to_dataframe: loading results stays light
+    import pandas as pd
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -169,6 +171,8 @@ class PoseEstimates:
     def to_dataframe(self) -> pd.DataFrame:
         """A DataFrame with columns ``scene_id, im_id, obj_id, score, R0..R8`` (row-major),
         ``t0..t2`` (mm), ``time`` (s), ``line``."""
+        import pandas as pd
+
         cols: dict[str, Any] = {k: getattr(self, k) for k in (*_ID_FIELDS, "score")}
         R = self.R.reshape(-1, 9)
         cols.update({f"R{k}": R[:, k] for k in range(9)})

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,7 +26,13 @@ from bopsurg.plugins import DepthRenderer, available_plugins, load_plugin
 
 if TYPE_CHECKING:
     from bopsurg.bop.dataset import BopDataset
+    from bopsurg.bop.results import PoseEstimates
+    from bopsurg.bop.targets import ImageTarget, Target
     from bopsurg.cli.commands import Subparsers
+    from bopsurg.estimation import Detections
+    from bopsurg.evaluation.vsd_pairs import StartedVsd
+    from bopsurg.evaluation.vsd_worker import VsdWorker
+    from bopsurg.executors import Executor
 
 log = logging.getLogger(__name__)
 
@@ -195,16 +202,23 @@ def _renderer_name(renderer: DepthRenderer | None) -> str | None:
     raise BopsurgError(f"renderer {type(renderer).__name__} is not an installed plugin")
 
 
+@dataclass(frozen=True)
+class _Inputs:
+    """What ``eval`` loads before it evaluates (bad files fail before any work)."""
+
+    tasks: tuple[str, ...]
+    dataset: BopDataset
+    est: PoseEstimates
+    image_targets: list[ImageTarget] | None
+    boxes: dict[tuple[int, int], Detections] | None
+    targets: list[Target] | None
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
-    from bopsurg._version import __version__
     from bopsurg.bop.targets import load_image_targets, load_targets
-    from bopsurg.cli.eval_stats import write_intervals
     from bopsurg.evaluation.coco_eval import is_coco_results
-    from bopsurg.evaluation.device import metric_device
-    from bopsurg.evaluation.runner import evaluate, evaluate_distributed, write_evaluation
-    from bopsurg.evaluation.summary import format_table
-    from bopsurg.evaluation.tasks import add_detection_scores, resolve_tasks
+    from bopsurg.evaluation.tasks import resolve_tasks
 
     t0 = time.perf_counter()
     executor = None
@@ -218,25 +232,98 @@ def run(args: argparse.Namespace) -> int:
         return run_coco(args)
     tasks = resolve_tasks(args.task)
     dataset, est = load_dataset_and_results(args)
-    image_targets = load_image_targets(args.targets_bop24) if args.targets_bop24 else None
-    boxes = load_detections_arg(args)  # early: a bad file fails before the evaluation
-    targets = load_targets(args.targets) if args.targets else None
+    inputs = _Inputs(
+        tasks,
+        dataset,
+        est,
+        load_image_targets(args.targets_bop24) if args.targets_bop24 else None,
+        load_detections_arg(args),  # early: a bad file fails before the evaluation
+        load_targets(args.targets) if args.targets else None,
+    )
     renderer = _renderer(args.renderer, dataset)
+    # VSD starts first, on a worker process, before this one imports the evaluation (pandas,
+    # scipy) and runs the rest of it.
+    started, worker = None, None
+    if renderer is not None and executor is None:
+        started, worker = _start_vsd(args, inputs, renderer)
+    try:
+        return _evaluate_and_write(args, inputs, renderer, executor, started, t0)
+    finally:
+        if worker is not None:
+            worker.close()
+
+
+def _start_vsd(
+    args: argparse.Namespace, inputs: _Inputs, renderer: DepthRenderer
+) -> tuple[StartedVsd, VsdWorker | None]:
+    """VSD of the BOP19 pairs, started on a worker process with ``renderer``'s plugin (or
+    pending in this one when no worker starts), and the worker."""
+    from bopsurg.evaluation.pair_errors import ModelCache
+    from bopsurg.evaluation.vsd_pairs import VsdInputs, start_vsd_early
+    from bopsurg.evaluation.vsd_worker import VsdWorker
+
+    dataset = inputs.dataset
+    name = _renderer_name(renderer)
+    worker = VsdWorker.start(name) if name is not None else None
+    vsd = VsdInputs(dataset, renderer, _vsd_delta(args, dataset), not args.no_progress, worker)
+    try:
+        started = start_vsd_early(
+            inputs.est,
+            dataset.targets() if inputs.targets is None else inputs.targets,
+            ModelCache(dataset, max_sym_disc_step=0.01),
+            vsd,
+        )
+    except BaseException:
+        if worker is not None:
+            worker.close()
+        raise
+    return started, worker
+
+
+def _vsd_delta(args: argparse.Namespace, dataset: BopDataset) -> float:
+    """VSD's δ, mm: ``--vsd-delta``, else the dataset's."""
+    delta: float = dataset.vsd_delta_mm if args.vsd_delta is None else args.vsd_delta
+    return delta
+
+
+def _evaluate_and_write(
+    args: argparse.Namespace,
+    inputs: _Inputs,
+    renderer: DepthRenderer | None,
+    executor: Executor | None,
+    started: StartedVsd | None,
+    t0: float,
+) -> int:
+    """The evaluation, its outputs and what it prints, once the inputs are loaded."""
+    from bopsurg._version import __version__
+    from bopsurg.cli.eval_stats import early_intervals, write_intervals
+    from bopsurg.evaluation.device import metric_device
+    from bopsurg.evaluation.runner import begin_evaluation, evaluate_distributed, write_evaluation
+    from bopsurg.evaluation.summary import format_table
+    from bopsurg.evaluation.tasks import detection_evaluation, merge_task_scores
+
+    tasks, dataset, est, targets = inputs.tasks, inputs.dataset, inputs.est, inputs.targets
     options = {
         "min_visib": args.min_visib,
-        "vsd_delta": dataset.vsd_delta_mm if args.vsd_delta is None else args.vsd_delta,
+        "vsd_delta": _vsd_delta(args, dataset),
         "instance_metrics": [m.strip() for m in args.metrics.split(",") if m.strip()],
     }
+    early = None
     with metric_device(args.device):  # MSSD, MSPD, ADD on the CPU or a GPU
         if executor is None:
-            result = evaluate(
+            in_progress = begin_evaluation(
                 dataset,
                 est,
                 targets=targets,
                 renderer=renderer,
                 progress=not args.no_progress,
+                started=started,
                 **options,
             )
+            # while VSD renders on its worker: BOP24 and the intervals that need no VSD
+            det = detection_evaluation(tasks, dataset, est, inputs.image_targets)
+            early = early_intervals(in_progress.gt_rows, det, args, in_progress.min_visib)
+            result = in_progress.finish()
         else:  # scenes in parallel: each worker loads the renderer plugin itself
             result = evaluate_distributed(
                 dataset,
@@ -247,7 +334,8 @@ def run(args: argparse.Namespace) -> int:
                 progress=not args.no_progress,
                 **options,
             )
-        det = add_detection_scores(result.scores, tasks, dataset, est, image_targets)
+            det = detection_evaluation(tasks, dataset, est, inputs.image_targets)
+        merge_task_scores(result.scores, tasks, det)
     meta: dict[str, object] = {
         "bopsurg_version": __version__,
         "dataset": str(Path(args.dataset).resolve()),
@@ -257,7 +345,7 @@ def run(args: argparse.Namespace) -> int:
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
     curves = result.curves if "bop19" in tasks else None  # BOP19 keys only with its task
-    write_intervals(result.gt_rows, det, args, curves)  # intervals, compare's samples
+    write_intervals(result.gt_rows, det, args, curves, early)  # intervals, compare's samples
     if args.figures:
         from bopsurg.viz.figures import figures_of_evaluation
 
@@ -269,6 +357,6 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun:
         from bopsurg.viz import log_evaluation
 
-        rrd = log_evaluation(dataset, est, result, args.rerun, detections=boxes)
+        rrd = log_evaluation(dataset, est, result, args.rerun, detections=inputs.boxes)
         print(f"wrote {rrd}; open it with: rerun {rrd}")
     return 0

@@ -27,7 +27,7 @@ import io
 import zlib
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,7 +37,9 @@ from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.jsonio import load_json
 from bopsurg.bop.targets import ImageTarget
 from bopsurg.errors import BopsurgError, DatasetError, ResultsError
-from bopsurg.evaluation.coco_bootstrap import CocoSamples
+
+if TYPE_CHECKING:  # (its bootstrap imports pandas: recognising a results file stays light)
+    from bopsurg.evaluation.coco_bootstrap import CocoSamples
 
 #: ``COCOeval.stats`` in order, under the reference's names.
 STATS = (
@@ -245,6 +247,8 @@ def evaluate_coco_samples(
                 {f"bop22_coco_{prefix}_{s}": v for s, v in zip(STATS, values, strict=True)}
             )
     scores["bop22_coco_average_time_per_image"] = _average_time(results)
+    from bopsurg.evaluation.coco_bootstrap import CocoSamples
+
     samples = CocoSamples.from_cocoevals(evaluated, image_keys) if evaluated else None
     return scores, samples
 

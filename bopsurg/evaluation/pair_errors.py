@@ -8,9 +8,9 @@ estimates with GT instances of the same object in the same image and evaluate me
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from bopsurg.bop.dataset import BopDataset
@@ -19,6 +19,9 @@ from bopsurg.evaluation import device
 from bopsurg.evaluation.tables import GtTable
 from bopsurg.metrics.registry import Need, PairBatch, metric
 from bopsurg.metrics.symmetry import Symmetries, symmetry_transforms
+
+if TYPE_CHECKING:  # pandas on use (candidate_pairs): the model cache and the errors are numpy
+    import pandas as pd
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -35,10 +35,12 @@ from bopsurg.bop.targets import Target
 from bopsurg.errors import BopsurgError
 from bopsurg.evaluation import bop19
 from bopsurg.evaluation.ambiguity import AMBIGUITY_COLUMNS, ambiguity_splits, instance_ambiguity
+from bopsurg.evaluation.bop19_pairs import KeptPairs, kept_pairs_of_targets
 from bopsurg.evaluation.matching import greedy_match
 from bopsurg.evaluation.pair_errors import ModelCache, candidate_pairs, pair_errors
 from bopsurg.evaluation.summary import paper_summary
 from bopsurg.evaluation.tables import GtTable, estimates_frame, load_gt_table, rank_within_groups
+from bopsurg.evaluation.vsd_pairs import PendingVsd, StartedVsd, VsdInputs, start_vsd
 from bopsurg.metrics.registry import METRICS
 from bopsurg.plugins import DepthRenderer, load_plugin
 
@@ -135,6 +137,90 @@ def _instance_matching(
     return rows.reset_index(drop=True), gt_rows, pair_mssd
 
 
+def begin_evaluation(
+    dataset: BopDataset,
+    estimates: PoseEstimates,
+    *,
+    targets: Sequence[Target] | None = None,
+    min_visib: float = 0.3,
+    renderer: DepthRenderer | None = None,
+    vsd_delta: float = bop19.VSD_DELTA_MM,
+    max_sym_disc_step: float = 0.01,
+    instance_metrics: Sequence[str] | None = None,
+    scene_ids: Sequence[int] | None = None,
+    progress: bool = False,
+    started: StartedVsd | None = None,
+) -> EvaluationInProgress:
+    """:func:`evaluate` up to VSD's errors: the rest needs them
+    (:meth:`EvaluationInProgress.finish`), so that a caller can work while VSD renders on a
+    worker process. Arguments as for :func:`evaluate`.
+    """
+    if instance_metrics is None:
+        instance_metrics = tuple(METRICS)
+    unknown = set(instance_metrics) - set(METRICS)
+    if unknown:
+        raise BopsurgError(f"unknown metric(s) {sorted(unknown)}; choose from {', '.join(METRICS)}")
+    models = ModelCache(dataset, max_sym_disc_step)
+    if targets is None:
+        targets = dataset.targets()
+    vsd_inputs = None if renderer is None else VsdInputs(dataset, renderer, vsd_delta, progress)
+    if started is not None:  # VSD already under way: its GT table and pairs are ours
+        if scene_ids is not None:
+            raise BopsurgError("VSD started early evaluates the whole split, not scene_ids")
+        gt, kept, vsd_inputs = started.gt, started.kept, started.inputs
+        pending: PendingVsd | None = started.errors
+    else:
+        gt = load_gt_table(dataset, scene_ids)
+        if scene_ids is not None:
+            keep = set(scene_ids)
+            targets = [t for t in targets if t.scene_id in keep]
+            estimates = estimates.subset(np.isin(estimates.scene_id, sorted(keep)))
+        kept = kept_pairs_of_targets(estimates, gt, targets, models.diameters)
+        pending = None if vsd_inputs is None else start_vsd(estimates, gt, kept, vsd_inputs)
+    errors, gt_rows, pair_mssd = _instance_matching(estimates, gt, models, instance_metrics)
+    amb = instance_ambiguity(dataset, gt_rows, gt.R, gt.t, gt.K)
+    gt_rows = gt_rows.join(amb)
+    # errors.csv rows carry the ambiguity of the GT they were matched to
+    key = ["scene_id", "im_id", "obj_id", "gt_id"]
+    errors = errors.merge(gt_rows[[*key, *amb.columns]], on=key, how="left")
+    return EvaluationInProgress(
+        estimates, gt, targets, models, kept, vsd_inputs, pending, errors, gt_rows, pair_mssd,
+        min_visib,
+    )  # fmt: skip
+
+
+@dataclass
+class EvaluationInProgress:
+    """An evaluation with everything but what needs VSD's errors (:func:`begin_evaluation`);
+    :meth:`finish` waits for VSD and completes it. The per-GT rows are final already."""
+
+    estimates: PoseEstimates
+    gt: GtTable
+    targets: Sequence[Target]
+    models: ModelCache
+    kept: KeptPairs
+    vsd_inputs: VsdInputs | None
+    vsd: PendingVsd | None
+    errors: pd.DataFrame
+    gt_rows: pd.DataFrame
+    pair_mssd: pd.DataFrame
+    min_visib: float
+
+    def finish(self) -> Evaluation:
+        """The BOP19 recall curves (waiting for VSD's errors), scores and summary."""
+        curves = bop19.recall_curves(
+            self.estimates,
+            self.gt,
+            self.targets,
+            self.models,
+            pair_mssd=self.pair_mssd,
+            vsd_inputs=self.vsd_inputs,
+            kept=self.kept,
+            vsd=self.vsd,
+        )
+        return _assemble(self.errors, self.gt_rows, curves, self.estimates, self.min_visib)
+
+
 def evaluate(
     dataset: BopDataset,
     estimates: PoseEstimates,
@@ -147,6 +233,7 @@ def evaluate(
     instance_metrics: Sequence[str] | None = None,
     scene_ids: Sequence[int] | None = None,
     progress: bool = False,
+    started: StartedVsd | None = None,
 ) -> Evaluation:
     """Evaluate pose estimates on a BOP dataset split.
 
@@ -164,34 +251,26 @@ def evaluate(
             empty).
         scene_ids: Evaluate only these scenes (their GT, estimates and targets).
         progress: Show progress bars.
+        started: VSD already started on these estimates and targets with ``renderer``
+            (:func:`~bopsurg.evaluation.vsd_pairs.start_vsd_early`, maybe on a worker
+            process); its GT table and pairs are used.
 
     Returns:
         The :class:`Evaluation`.
     """
-    if instance_metrics is None:
-        instance_metrics = tuple(METRICS)
-    unknown = set(instance_metrics) - set(METRICS)
-    if unknown:
-        raise BopsurgError(f"unknown metric(s) {sorted(unknown)}; choose from {', '.join(METRICS)}")
-    models = ModelCache(dataset, max_sym_disc_step)
-    gt = load_gt_table(dataset, scene_ids)
-    if targets is None:
-        targets = dataset.targets()
-    if scene_ids is not None:
-        keep = set(scene_ids)
-        targets = [t for t in targets if t.scene_id in keep]
-        estimates = estimates.subset(np.isin(estimates.scene_id, sorted(keep)))
-    errors, gt_rows, pair_mssd = _instance_matching(estimates, gt, models, instance_metrics)
-    amb = instance_ambiguity(dataset, gt_rows, gt.R, gt.t, gt.K)
-    gt_rows = gt_rows.join(amb)
-    # errors.csv rows carry the ambiguity of the GT they were matched to
-    key = ["scene_id", "im_id", "obj_id", "gt_id"]
-    errors = errors.merge(gt_rows[[*key, *amb.columns]], on=key, how="left")
-    vsd = None if renderer is None else bop19.VsdInputs(dataset, renderer, vsd_delta, progress)
-    curves = bop19.recall_curves(
-        estimates, gt, targets, models, pair_mssd=pair_mssd, vsd_inputs=vsd
-    )
-    return _assemble(errors, gt_rows, curves, estimates, min_visib)
+    return begin_evaluation(
+        dataset,
+        estimates,
+        targets=targets,
+        min_visib=min_visib,
+        renderer=renderer,
+        vsd_delta=vsd_delta,
+        max_sym_disc_step=max_sym_disc_step,
+        instance_metrics=instance_metrics,
+        scene_ids=scene_ids,
+        progress=progress,
+        started=started,
+    ).finish()
 
 
 def _assemble(

@@ -8,15 +8,17 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.results import PoseEstimates
 from bopsurg.errors import DatasetError
+
+if TYPE_CHECKING:  # pandas on use: the GT table and the ranks are plain numpy
+    import pandas as pd
 
 I64 = NDArray[np.int64]
 F64 = NDArray[np.float64]
@@ -51,6 +53,8 @@ class GtTable:
 
     def frame(self) -> pd.DataFrame:
         """Identifier columns as a DataFrame with a ``g`` column = row index."""
+        import pandas as pd
+
         return pd.DataFrame(
             {
                 "scene_id": self.scene_id,
@@ -128,6 +132,8 @@ def load_gt_table(
 
 def estimates_frame(est: PoseEstimates) -> pd.DataFrame:
     """Identifier columns of the estimates with ``e`` = row index and ``score``."""
+    import pandas as pd
+
     return pd.DataFrame(
         {
             "scene_id": est.scene_id,
@@ -150,6 +156,12 @@ def rank_within_groups(keys: pd.DataFrame, score: F64) -> tuple[I64, I64]:
         (rank, est_id), each (N,) int64.
     """
     group = keys.groupby(list(keys.columns), sort=False).ngroup().to_numpy()
+    return rank_in_groups(group, score)
+
+
+def rank_in_groups(group: I64, score: F64) -> tuple[I64, I64]:
+    """:func:`rank_within_groups` with the groups given as labels: ``(N,)`` int64, equal for
+    rows of the same group (only equality matters)."""
     n = group.shape[0]
     order_idx = np.arange(n)
     # lexsort: last key is primary -> group, then score descending, then file order.

@@ -25,7 +25,15 @@ if TYPE_CHECKING:  # light at import: the CLI reads the task names before runnin
     from bopsurg.bop.targets import ImageTarget
     from bopsurg.evaluation.bop24 import DetectionEvaluation
 
-__all__ = ["COCO_TASKS", "POSE_TASKS", "TASK_CHOICES", "add_detection_scores", "resolve_tasks"]
+__all__ = [
+    "COCO_TASKS",
+    "POSE_TASKS",
+    "TASK_CHOICES",
+    "add_detection_scores",
+    "detection_evaluation",
+    "merge_task_scores",
+    "resolve_tasks",
+]
 
 
 def resolve_tasks(
@@ -70,15 +78,34 @@ def add_detection_scores(
 ) -> DetectionEvaluation | None:
     """Add the BOP24 keys to ``scores`` when ``bop24`` is a task; drop the BOP19 keys when
     ``bop19`` is not (the pose evaluation computes them anyway for the paper's table)."""
-    if "bop19" not in tasks:
-        for key in [k for k in scores if k.startswith("bop19_")]:
-            del scores[key]
+    det = detection_evaluation(tasks, dataset, estimates, image_targets)
+    merge_task_scores(scores, tasks, det)
+    return det
+
+
+def detection_evaluation(
+    tasks: Sequence[str],
+    dataset: BopDataset,
+    estimates: PoseEstimates,
+    image_targets: Sequence[ImageTarget] | None = None,
+) -> DetectionEvaluation | None:
+    """The BOP24 evaluation when ``bop24`` is a task, else None."""
     if "bop24" not in tasks:
         return None
     from bopsurg.evaluation.bop24 import evaluate_bop24
 
-    det = evaluate_bop24(
+    return evaluate_bop24(
         dataset, estimates, image_targets, max_per_image=dataset.max_estimates_per_image
     )
-    scores.update(det.scores)
-    return det
+
+
+def merge_task_scores(
+    scores: dict[str, float], tasks: Sequence[str], det: DetectionEvaluation | None
+) -> None:
+    """:func:`add_detection_scores` with the BOP24 evaluation done already
+    (:func:`detection_evaluation`)."""
+    if "bop19" not in tasks:
+        for key in [k for k in scores if k.startswith("bop19_")]:
+            del scores[key]
+    if det is not None:
+        scores.update(det.scores)

@@ -212,11 +212,11 @@ def test_eval_takes_vsd_delta_and_the_dataset_flag_from_the_registry(tmp_path, m
     class Stop(Exception):
         pass
 
-    def evaluate(dataset, est, **options):
+    def begin_evaluation(dataset, est, **options):
         seen.update(options, spec=dataset.spec.name)
         raise Stop
 
-    monkeypatch.setattr(runner, "evaluate", evaluate)
+    monkeypatch.setattr(runner, "begin_evaluation", begin_evaluation)
     root = build(tmp_path, "itodd").rename(tmp_path / "scan")
     csv = tmp_path / "res.csv"
     save_results(csv, estimates_from_gt(BopDataset(root, name="itodd")))

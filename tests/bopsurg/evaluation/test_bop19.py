@@ -10,8 +10,11 @@ from hypothesis import strategies as st
 from bopsurg import metrics
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.evaluation import bop19
+from bopsurg.evaluation.bop19_pairs import TargetTable, kept_pairs
 from bopsurg.evaluation.matching import greedy_match, valid_gts_localization
 from bopsurg.evaluation.runner import evaluate
+from bopsurg.evaluation.vsd_pairs import VsdInputs, vsd_errors
+from bopsurg.evaluation.vsd_worker import VsdWorker
 from tests.bopsurg.evaluation import reference_scoring as ref
 
 
@@ -137,15 +140,10 @@ class _WholeImageRenderer:
         return self.inner.render_depth(model, R, t, K, width, height)
 
 
-def test_vsd_errors_equal_whole_image_vsd_of_every_pair(tmp_path):
-    """Windows (rendered and decoded) change nothing: the errors of every kept pair are those
-    of metrics.vsd on the whole depth images, bit for bit, with a windowed renderer and with
-    one that renders whole images only."""
-    pytest.importorskip("pybullet")
-    from bopsurg.bop.images import load_depth, save_depth
-    from bopsurg.bop.results import load_results
-    from bopsurg.evaluation.pair_errors import ModelCache
-    from bopsurg.evaluation.tables import load_gt_table
+def _dataset_with_depth(tmp_path):
+    """The example dataset (6 images) with depth images: the needle on a plane, a bar
+    occluding, missing measurements."""
+    from bopsurg.bop.images import save_depth
     from bopsurg.example import ExampleSpec, write_example_dataset
     from bopsurg.generators.depth_renderer import PyBulletDepthRenderer
 
@@ -154,7 +152,7 @@ def test_vsd_errors_equal_whole_image_vsd_of_every_pair(tmp_path):
     renderer = PyBulletDepthRenderer()
     w, h = ds.image_size()
     rng = np.random.default_rng(0)
-    for im_id, cam in ds.scene(1).camera.items():  # the needle on a plane, a bar occluding
+    for im_id, cam in ds.scene(1).camera.items():
         scene_depth = np.full((h, w), 1000.0)
         scene_depth[:, w // 2 : w // 2 + 40] = 60.0
         scene_depth[rng.random((h, w)) < 0.05] = 0.0  # missing measurements
@@ -162,15 +160,33 @@ def test_vsd_errors_equal_whole_image_vsd_of_every_pair(tmp_path):
             d = renderer.render_depth(ds.model(g.obj_id), g.R, g.t, cam.K, w, h)
             scene_depth = np.where(d > 0, np.minimum(scene_depth, d + 2.0), scene_depth)
         save_depth(ds.scene(1).depth_path(im_id), scene_depth / cam.depth_scale)
+    return ex, ds, renderer
+
+
+def test_vsd_errors_equal_whole_image_vsd_of_every_pair(tmp_path):
+    """Windows (rendered and decoded) change nothing: the errors of every kept pair are those
+    of metrics.vsd on the whole depth images, bit for bit, with a windowed renderer, with
+    one that renders whole images only, and on the VSD worker process."""
+    pytest.importorskip("pybullet")
+    from bopsurg.bop.images import load_depth
+    from bopsurg.bop.results import load_results
+    from bopsurg.evaluation.pair_errors import ModelCache
+    from bopsurg.evaluation.tables import load_gt_table
+
+    ex, ds, renderer = _dataset_with_depth(tmp_path)
+    w, h = ds.image_size()
     est = load_results(ex.results)
     gt = load_gt_table(ds)
-    pairs = bop19.kept_pairs(est, gt, bop19._target_frame(ds.targets()))
+    pairs = kept_pairs(est, gt, TargetTable.of(ds.targets()))
     e_idx, g_idx = pairs.est_index, pairs.gt_index
     diam = ModelCache(ds, 0.01).diameters(gt.obj_id[g_idx])
     got = [
-        bop19.vsd_errors(est, gt, e_idx, g_idx, diam, bop19.VsdInputs(ds, r))
+        vsd_errors(est, gt, e_idx, g_idx, diam, VsdInputs(ds, r))
         for r in (renderer, _WholeImageRenderer(renderer))
     ]
+    worker = VsdWorker.start("pybullet")  # the same job on the worker process
+    assert worker is not None
+    got.append(vsd_errors(est, gt, e_idx, g_idx, diam, VsdInputs(ds, renderer, worker=worker)))
     want = np.ones((10, e_idx.size))
     for p, (e, g) in enumerate(zip(e_idx, g_idx, strict=True)):
         cam = ds.scene(int(gt.scene_id[g])).camera[int(gt.im_id[g])]
@@ -181,5 +197,43 @@ def test_vsd_errors_equal_whole_image_vsd_of_every_pair(tmp_path):
         want[:, p] = metrics.vsd(test, d_est, d_gt, cam.K, 15.0, bop19.VSD_TAUS, float(diam[p]))
     assert e_idx.size >= 3
     assert np.any((want > 0) & (want < 1))  # partial errors: the windows are exercised
-    np.testing.assert_array_equal(got[0], want)
-    np.testing.assert_array_equal(got[1], want)
+    for errors in got:
+        np.testing.assert_array_equal(errors, want)
+
+
+def test_cli_eval_with_its_vsd_worker_equals_evaluate_in_this_process(tmp_path, monkeypatch):
+    """'bopsurg eval' renders VSD on its worker process while it does the rest; the scores
+    are those of evaluate() rendering in this process."""
+    pytest.importorskip("pybullet")
+    import json
+
+    from bopsurg.bop.results import PoseEstimates, load_results, save_results
+    from bopsurg.cli.main import main
+    from bopsurg.evaluation.tables import load_gt_table
+
+    ex, ds, renderer = _dataset_with_depth(tmp_path)
+    answered = []
+    collect = VsdWorker.result
+
+    def spy(self):
+        errors = collect(self)
+        answered.append(errors.shape)
+        return errors
+
+    monkeypatch.setattr(VsdWorker, "result", spy)
+    gt = load_gt_table(ds)  # estimates: the GT poses moved away by 0 to 3 mm
+    shift = np.random.default_rng(1).uniform(0.0, 3.0, size=(len(gt), 1)) * [0.0, 0.0, 1.0]
+    est = PoseEstimates.from_arrays(scene_id=gt.scene_id, im_id=gt.im_id, obj_id=gt.obj_id,
+                                    score=np.ones(len(gt)), R=gt.R, t=gt.t + shift)  # fmt: skip
+    csv = tmp_path / "results.csv"
+    save_results(csv, est)
+    out = tmp_path / "cli"
+    argv = ["eval", str(ex.root), str(csv), "--out", str(out), "--bootstrap", "0"]
+    assert main([*argv, "--split", ex.split]) == 0
+    assert len(answered) == 1  # the worker computed VSD
+    scores = json.loads((out / "scores.json").read_text())
+    result = evaluate(ds, load_results(csv), renderer=renderer)
+    assert 0.0 < scores["bop19_average_recall_vsd"] < 1.0  # the case exercises VSD
+    for key in ("bop19_average_recall_vsd", "bop19_average_recall"):
+        assert scores[key] == result.scores[key]
+    assert scores["details"]["vsd"]["tp_counts"] == result.curves["vsd"].tp_counts
