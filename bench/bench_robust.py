@@ -19,8 +19,12 @@ it. Rerun the same command to resume: made splits, predictions and evaluations a
     python bench/bench_robust.py --out runs/robust_new --detector runs/det/detector.pt \
         --pose runs/pose/pose.pt --seg runs/seg/needle_seg.pt --ends runs/ends/needle_ends.pt
 
-The test splits are SEALED: one measurement per shipped model, never used to choose anything
-(choose on the file's val splits).
+The test splits are SEALED: one measurement per shipped model, never used to choose anything.
+Choose on the file's val splits with the same bench: ``--role val`` measures those instead (a
+candidate checkpoint or setting per ``--out`` folder), e.g.
+
+    python bench/bench_robust.py --role val --data runs/val_data --out runs/val_e27 \
+        --pose snapshots/e27/pose.pt
 """
 
 from __future__ import annotations
@@ -149,24 +153,37 @@ def main() -> None:
     add_predict_option(ap, "ends.margin=3")
     ap.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates")
     ap.add_argument(
-        "--only", help="these test splits of the file only (comma-separated; two processes "
+        "--role", choices=("test", "val"), default="test",
+        help="measure the file's sealed test splits (default) or its val splits, to choose on",
+    )  # fmt: skip
+    ap.add_argument(
+        "--only", help="these splits of the --role only (comma-separated; two processes "
         "may measure two splits into one --out at once)",
     )  # fmt: skip
     ap.add_argument("--ambf", type=Path, help="also the AMBF pipeline's frames (a final look)")
     ap.add_argument("--json", type=Path, help="write the table's numbers here")
+    ap.add_argument(
+        "--data", type=Path,
+        help="where the splits' dataset roots and episodes are made (default: --out); one "
+        "folder shared by the candidates measured on the same splits",
+    )  # fmt: skip
     args = ap.parse_args()
+    if args.ambf and args.role == "val":
+        ap.error("--ambf is a final look, not a choice: measure it with --role test only")
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
+    made: Path = args.data or out
     spec = spec_of_file(read_mapping(args.splits), args.splits)
     argv = model_argv(args)
     rows: dict[str, dict[str, dict]] = {}
-    names = args.only.split(",") if args.only else spec.test
+    measured = spec.val if args.role == "val" else spec.test
+    names = args.only.split(",") if args.only else measured
     for name in names:
-        if name not in spec.test:
-            raise SystemExit(f"{args.splits}: {name!r} is not one of its test splits")
-        data = out / f"data_{name}"
+        if name not in measured:
+            raise SystemExit(f"{args.splits}: {name!r} is not one of its {args.role} splits")
+        data = made / f"data_{name}"
         run(["data", str(args.splits), "--root", str(data), "--only", name, "--bags",
-             str(out / "bags"), "--workers", str(args.workers), "--no-progress"])  # fmt: skip
+             str(made / "bags"), "--workers", str(args.workers), "--no-progress"])  # fmt: skip
         label = f"{name} (--domain {spec.splits[name].domain})"
         rows[label] = {
             i: table_row(predict_and_eval(data, name, out, f"{name}_{i}", [*argv, *extra], args),
