@@ -216,16 +216,45 @@ class _Inputs:
 
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
-    from bopsurg.bop.targets import load_image_targets, load_targets
-    from bopsurg.evaluation.coco_eval import is_coco_results
-    from bopsurg.evaluation.tasks import resolve_tasks
-
     t0 = time.perf_counter()
     executor = None
     if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
         from bopsurg.executors import make_executor
 
         executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
+    # The VSD worker starts first, before this process imports numpy, and is closed below if
+    # VSD does not run after all (a COCO file, no depth images ...).
+    worker = _early_worker(args.renderer) if executor is None else None
+    try:
+        return _run(args, executor, worker, t0)
+    finally:
+        if worker is not None:
+            worker.close()
+
+
+def _early_worker(choice: str) -> VsdWorker | None:
+    """A VSD worker for the renderer that ``--renderer`` would load, if one is installed."""
+    if choice == "none":
+        return None
+    from bopsurg.evaluation.vsd_worker import VsdWorker
+
+    name = choice
+    if choice == "auto":  # the plugin load_plugin("renderer") loads
+        installed = sorted(available_plugins("renderer"))
+        if not installed:
+            return None
+        name = installed[0]
+    return VsdWorker.start(name)
+
+
+def _run(
+    args: argparse.Namespace, executor: Executor | None, worker: VsdWorker | None, t0: float
+) -> int:
+    """:func:`run` once the executor and the VSD worker are started."""
+    from bopsurg.bop.targets import load_image_targets, load_targets
+    from bopsurg.evaluation.coco_eval import is_coco_results
+    from bopsurg.evaluation.tasks import resolve_tasks
+
     if is_coco_results(args.results):  # 2D tasks: a COCO JSON, recognised by its content
         from bopsurg.cli.eval_coco import run_coco
 
@@ -241,43 +270,37 @@ def run(args: argparse.Namespace) -> int:
         load_targets(args.targets) if args.targets else None,
     )
     renderer = _renderer(args.renderer, dataset)
-    # VSD starts first, on a worker process, before this one imports the evaluation (pandas,
+    # VSD's pairs go to the worker before this process imports the evaluation (pandas,
     # scipy) and runs the rest of it.
-    started, worker = None, None
+    started = None
     if renderer is not None and executor is None:
-        started, worker = _start_vsd(args, inputs, renderer)
-    try:
-        return _evaluate_and_write(args, inputs, renderer, executor, started, t0)
-    finally:
-        if worker is not None:
-            worker.close()
+        started = _start_vsd(args, inputs, renderer, worker)
+    if worker is not None and (started is None or started.inputs.worker is not worker):
+        worker.close()  # not needed: its imports stop taking a core from this process
+    return _evaluate_and_write(args, inputs, renderer, executor, started, t0)
 
 
 def _start_vsd(
-    args: argparse.Namespace, inputs: _Inputs, renderer: DepthRenderer
-) -> tuple[StartedVsd, VsdWorker | None]:
-    """VSD of the BOP19 pairs, started on a worker process with ``renderer``'s plugin (or
-    pending in this one when no worker starts), and the worker."""
+    args: argparse.Namespace,
+    inputs: _Inputs,
+    renderer: DepthRenderer,
+    worker: VsdWorker | None,
+) -> StartedVsd:
+    """VSD of the BOP19 pairs, sent to ``worker`` when it renders with ``renderer``'s plugin
+    (else pending in this process)."""
     from bopsurg.evaluation.pair_errors import ModelCache
     from bopsurg.evaluation.vsd_pairs import VsdInputs, start_vsd_early
-    from bopsurg.evaluation.vsd_worker import VsdWorker
 
     dataset = inputs.dataset
-    name = _renderer_name(renderer)
-    worker = VsdWorker.start(name) if name is not None else None
+    if worker is not None and worker.renderer_name != _renderer_name(renderer):
+        worker = None  # (not this renderer's: run() closes it)
     vsd = VsdInputs(dataset, renderer, _vsd_delta(args, dataset), not args.no_progress, worker)
-    try:
-        started = start_vsd_early(
-            inputs.est,
-            dataset.targets() if inputs.targets is None else inputs.targets,
-            ModelCache(dataset, max_sym_disc_step=0.01),
-            vsd,
-        )
-    except BaseException:
-        if worker is not None:
-            worker.close()
-        raise
-    return started, worker
+    return start_vsd_early(
+        inputs.est,
+        dataset.targets() if inputs.targets is None else inputs.targets,
+        ModelCache(dataset, max_sym_disc_step=0.01),
+        vsd,
+    )
 
 
 def _vsd_delta(args: argparse.Namespace, dataset: BopDataset) -> float:
