@@ -368,7 +368,7 @@ def _evaluate_and_write(
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
     curves = result.curves if "bop19" in tasks else None  # BOP19 keys only with its task
-    write_intervals(result.gt_rows, det, args, curves, early)  # intervals, compare's samples
+    write_intervals(result.gt_columns, det, args, curves, early)  # intervals, compare's samples
     if args.figures:
         from bopsurg.viz.figures import figures_of_evaluation
 
