@@ -323,8 +323,9 @@ def adi(
     slack = 1e-12 * (rho + np.linalg.norm(pairs.t_est, axis=1) + np.linalg.norm(pairs.t_gt, axis=1))
     # Sliding-midpoint splits and larger leaves: 2x faster queries on thin curved models
     # (needles), the same on compact ones; the nearest neighbour is exact either way.
-    from scipy.spatial import cKDTree  # on first use: 'eval --help' lists metrics, light
+    from bopsurg.metrics._kdtree import ckdtree_class  # on first use: the registry is light
 
+    cKDTree = ckdtree_class()  # noqa: N806  (scipy's class)
     tree = cKDTree(p, leafsize=64, balanced_tree=False, compact_nodes=False)
     p_t = np.ascontiguousarray(p.T)
     out = np.empty(pairs.n)
