@@ -72,10 +72,12 @@ class VsdWorker:
         self._answered = False
 
     @classmethod
-    def start(cls, renderer_name: str) -> VsdWorker | None:
-        """Start a worker that renders with the renderer plugin ``renderer_name``; None when
-        no process can be started (the caller then computes VSD itself)."""
-        target = _plugin_target(renderer_name)
+    def start(cls, renderer_name: str, target: str | None = None) -> VsdWorker | None:
+        """Start a worker that renders with the renderer plugin ``renderer_name`` (importable
+        from ``target``, ``module:attribute``; default: looked up); None when no process can
+        be started (the caller then computes VSD itself)."""
+        if target is None:
+            target = _plugin_target(renderer_name)
         try:
             proc = subprocess.Popen(
                 [sys.executable, "-c", _BOOT, json.dumps(sys.path), renderer_name, target],
