@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -229,6 +231,11 @@ def run(args: argparse.Namespace) -> int:
         from bopsurg.executors import make_executor
 
         executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
+    if executor is None and "numpy" not in sys.modules:
+        # One BLAS thread (read when numpy is imported): the VSD worker takes the other core,
+        # and the evaluation's small matrix products cost several times more CPU split over
+        # threads that wait for each other.
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     # The VSD worker starts first, before this process imports numpy, and is closed below if
     # VSD does not run after all (a COCO file, no depth images ...).
     installed = {} if args.renderer == "none" else available_plugins("renderer")

@@ -83,6 +83,8 @@ class VsdWorker:
                 [sys.executable, "-c", _BOOT, json.dumps(sys.path), renderer_name, target],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
+                # one BLAS thread unless the user chose: the caller works on the other core
+                env={"OPENBLAS_NUM_THREADS": "1", **os.environ},
             )
         except OSError as err:
             log.debug("VSD worker not started: %s", err)
