@@ -94,7 +94,7 @@ def test_the_rankings_at_once_equal_each_ranking_alone_bit_for_bit(seed):
         [weighted_ap(w[:, img], tp, total[:, r]) for r, (img, tp) in enumerate(runs)], axis=1
     )
     np.testing.assert_array_equal(weighted_ap_runs(w, runs, total), expected)
-    with mock.patch.object(bootstrap, "_BLOCK", 50):
+    with mock.patch.object(bootstrap, "_RUNS_BLOCK", 50):
         np.testing.assert_array_equal(weighted_ap_runs(w, runs, total), expected)
 
 
