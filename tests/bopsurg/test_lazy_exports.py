@@ -25,10 +25,10 @@ def test_every_exported_name_is_its_modules_object(package):
 def test_a_name_shared_with_its_module_stays_the_export():
     import bopsurg.metrics
     import bopsurg.metrics.vsd  # binds the submodule on the package, as an import does
-
     from bopsurg.metrics import vsd
 
-    assert callable(vsd) and vsd is sys.modules["bopsurg.metrics.vsd"].vsd
+    assert callable(vsd)
+    assert vsd is sys.modules["bopsurg.metrics.vsd"].vsd
     assert bopsurg.metrics.vsd is vsd
 
 
