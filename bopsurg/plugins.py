@@ -100,12 +100,16 @@ def available_plugins(kind: str) -> dict[str, EntryPoint]:
     return found
 
 
-def load_plugin(kind: str, name: str | None = None) -> Any:
+def load_plugin(
+    kind: str, name: str | None = None, *, installed: dict[str, EntryPoint] | None = None
+) -> Any:
     """Load a plugin object (class or factory) by kind and name.
 
     Args:
         kind: Plugin kind (see :data:`GROUPS`).
         name: Entry-point name; ``None`` takes the first installed one in name order.
+        installed: :func:`available_plugins` of ``kind``, when the caller has them already
+            (each call reads every installed distribution's entry points).
 
     Returns:
         The loaded object.
@@ -114,7 +118,7 @@ def load_plugin(kind: str, name: str | None = None) -> Any:
         BopsurgError: No such plugin is installed, or it fails to import (e.g. its optional
             dependencies are missing); the message says which extra to install.
     """
-    plugins = available_plugins(kind)
+    plugins = available_plugins(kind) if installed is None else installed
     if not plugins:
         raise BopsurgError(
             f"no {kind} plugin is installed (group {GROUPS[kind]!r}); "

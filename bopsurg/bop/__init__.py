@@ -34,45 +34,95 @@ Modules: :mod:`.jsonio` (JSON), :mod:`.scene` (scene_camera / scene_gt / scene_g
 
 from __future__ import annotations
 
-from bopsurg.bop.check import Problem, check_dataset
-from bopsurg.bop.dataset import BopDataset, BopScene, model_path, save_camera_json, scene_dir
-from bopsurg.bop.images import (
-    image_size,
-    load_depth,
-    load_mask,
-    load_rgb,
-    save_depth,
-    save_mask,
-    save_rgb,
-)
-from bopsurg.bop.jsonio import load_json, save_json
-from bopsurg.bop.meshes import (
-    ObjectModel,
-    compute_model_info,
-    load_models_info,
-    load_ply,
-    save_models_info,
-    save_ply,
-)
-from bopsurg.bop.results import (
-    PoseEstimates,
-    average_time_per_image,
-    check_results_against_dataset,
-    load_results,
-    save_results,
-)
-from bopsurg.bop.scene import (
-    CameraInfo,
-    GtInfo,
-    GtPose,
-    load_scene_camera,
-    load_scene_gt,
-    load_scene_gt_info,
-    save_scene_camera,
-    save_scene_gt,
-    save_scene_gt_info,
-)
-from bopsurg.bop.targets import Target, enumerate_targets, load_targets, save_targets
+from typing import TYPE_CHECKING
+
+from bopsurg._lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from bopsurg.bop.check import Problem, check_dataset
+    from bopsurg.bop.dataset import BopDataset, BopScene, model_path, save_camera_json, scene_dir
+    from bopsurg.bop.images import (
+        image_size,
+        load_depth,
+        load_mask,
+        load_rgb,
+        save_depth,
+        save_mask,
+        save_rgb,
+    )
+    from bopsurg.bop.jsonio import load_json, save_json
+    from bopsurg.bop.meshes import (
+        ObjectModel,
+        compute_model_info,
+        load_models_info,
+        load_ply,
+        save_models_info,
+        save_ply,
+    )
+    from bopsurg.bop.results import (
+        PoseEstimates,
+        average_time_per_image,
+        check_results_against_dataset,
+        load_results,
+        save_results,
+    )
+    from bopsurg.bop.scene import (
+        CameraInfo,
+        GtInfo,
+        GtPose,
+        load_scene_camera,
+        load_scene_gt,
+        load_scene_gt_info,
+        save_scene_camera,
+        save_scene_gt,
+        save_scene_gt_info,
+    )
+    from bopsurg.bop.targets import Target, enumerate_targets, load_targets, save_targets
+
+#: The module of each public name, imported on first access (:mod:`bopsurg._lazy`): the VSD
+#: worker process, which needs images and meshes, loads no other.
+_HOME: dict[str, str] = {
+    "BopDataset": ".dataset",
+    "BopScene": ".dataset",
+    "CameraInfo": ".scene",
+    "GtInfo": ".scene",
+    "GtPose": ".scene",
+    "ObjectModel": ".meshes",
+    "PoseEstimates": ".results",
+    "Problem": ".check",
+    "Target": ".targets",
+    "average_time_per_image": ".results",
+    "check_dataset": ".check",
+    "check_results_against_dataset": ".results",
+    "compute_model_info": ".meshes",
+    "enumerate_targets": ".targets",
+    "image_size": ".images",
+    "load_depth": ".images",
+    "load_json": ".jsonio",
+    "load_mask": ".images",
+    "load_models_info": ".meshes",
+    "load_ply": ".meshes",
+    "load_results": ".results",
+    "load_rgb": ".images",
+    "load_scene_camera": ".scene",
+    "load_scene_gt": ".scene",
+    "load_scene_gt_info": ".scene",
+    "load_targets": ".targets",
+    "model_path": ".dataset",
+    "save_camera_json": ".dataset",
+    "save_depth": ".images",
+    "save_json": ".jsonio",
+    "save_mask": ".images",
+    "save_models_info": ".meshes",
+    "save_ply": ".meshes",
+    "save_results": ".results",
+    "save_rgb": ".images",
+    "save_scene_camera": ".scene",
+    "save_scene_gt": ".scene",
+    "save_scene_gt_info": ".scene",
+    "save_targets": ".targets",
+    "scene_dir": ".dataset",
+}
 
 __all__ = [
     "BopDataset",
@@ -116,3 +166,6 @@ __all__ = [
     "save_targets",
     "scene_dir",
 ]
+
+
+lazy_exports(__name__, _HOME)

@@ -16,7 +16,6 @@ import struct
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -31,6 +30,8 @@ DEPTH_MAX = 65535
 
 def _decode(path: str | Path, flags: int) -> NDArray[np.generic]:
     p = Path(path)
+    import cv2  # on first use: windowed PNG reads (VSD, masks) need no OpenCV
+
     data = read_bytes(p, DatasetError, expected="an image file", noun="image")
     im = None
     if data:
@@ -46,6 +47,8 @@ def _decode(path: str | Path, flags: int) -> NDArray[np.generic]:
 
 def _encode(path: str | Path, im: NDArray[Any], params: list[int] | None = None) -> None:
     suffix = Path(path).suffix.lower()
+    import cv2
+
     ok, buf = cv2.imencode(suffix, im, params or [])
     if not ok:
         raise DatasetError(f"OpenCV cannot encode a {suffix} image", path=path)
@@ -65,6 +68,8 @@ def load_depth(path: str | Path) -> NDArray[np.float32]:
     Raises:
         DatasetError: Missing, unreadable or multi-channel file.
     """
+    import cv2
+
     im = _decode(path, cv2.IMREAD_UNCHANGED)
     if im.ndim != 2:
         raise DatasetError(
@@ -86,6 +91,8 @@ def _decode_window(
         raise DatasetError(f"cannot decode image ({e})", path=p) from None
     if window is not None:
         return window
+    import cv2
+
     im = _decode(p, cv2.IMREAD_UNCHANGED)
     r = slice(max(rows[0], 0), max(rows[1], 0))
     return im[r] if cols is None else im[r, max(cols[0], 0) : max(cols[1], 0)]
@@ -156,6 +163,8 @@ def load_mask(path: str | Path) -> NDArray[np.bool_]:
     Raises:
         DatasetError: Missing or unreadable file.
     """
+    import cv2
+
     im = _decode(path, cv2.IMREAD_UNCHANGED)
     mask: NDArray[np.bool_] = np.any(im[:, :, :3] != 0, axis=2) if im.ndim == 3 else im != 0
     return mask
@@ -210,6 +219,8 @@ def load_rgb(path: str | Path) -> NDArray[np.uint8]:
     Raises:
         DatasetError: Missing or unreadable file.
     """
+    import cv2
+
     im = _decode(path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     return np.ascontiguousarray(im[:, :, ::-1])
 
@@ -236,6 +247,8 @@ def save_rgb(path: str | Path, rgb: ArrayLike, *, jpg_quality: int = 95) -> None
         im = np.ascontiguousarray(im[:, :, ::-1])  # OpenCV writes BGR
     elif im.ndim != 2:
         raise ShapeError(f"expected (H, W, 3) or (H, W), got shape {im.shape}", field="rgb")
+    import cv2
+
     if suffix == ".png":
         params = [cv2.IMWRITE_PNG_COMPRESSION, 1]  # fastest zlib level: 1.4x faster, ~5% larger
     else:
@@ -303,6 +316,8 @@ def image_size(path: str | Path) -> tuple[int, int]:
     if size is None and head[:2] == b"\xff\xd8":
         size = _jpeg_size(p)
     if size is None:  # other formats (TIFF ...): decode
+        import cv2
+
         im = _decode(p, cv2.IMREAD_UNCHANGED)
         size = (int(im.shape[1]), int(im.shape[0]))
     return size

@@ -138,13 +138,16 @@ def _missing_modules(extra: str) -> list[str]:
 
 def add_commands(sub: Subparsers, load: str | None) -> None:
     """Add every subcommand to ``sub``: the one called ``load`` with its module's arguments,
-    the others as entries of the listing only (nothing imported)."""
+    the others as entries of the listing only (nothing imported); when ``load`` is a core
+    command, the core ones only."""
     core = {c.name for c in CORE}
     for command in CORE:
         if command.name == load:
             load_core_module(command.name).register(sub)
         else:
             sub.add_parser(command.name, help=command.help, add_help=False)
+    if load in core:  # the listing is never shown: skip reading every distribution's plugins
+        return
     for name, ep in sorted(available_plugins("command").items()):
         if name in core:
             continue

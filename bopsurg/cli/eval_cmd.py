@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +27,8 @@ from bopsurg.metrics.registry import METRICS, help_lines
 from bopsurg.plugins import DepthRenderer, available_plugins, load_plugin
 
 if TYPE_CHECKING:
+    from importlib.metadata import EntryPoint
+
     from bopsurg.bop.dataset import BopDataset
     from bopsurg.bop.results import PoseEstimates
     from bopsurg.bop.targets import ImageTarget, Target
@@ -167,36 +171,41 @@ def _task_list(text: str) -> str:
     return ",".join(names)
 
 
-def _renderer(choice: str, dataset: BopDataset) -> DepthRenderer | None:
+def _renderer(
+    choice: str, dataset: BopDataset, installed: dict[str, EntryPoint] | None = None
+) -> DepthRenderer | None:
+    """The renderer ``--renderer`` names (``installed``: the renderer plugins, if known)."""
     if choice == "none":
         return None
+    if installed is None:
+        installed = available_plugins("renderer")
     has_depth = any((dataset.split_dir / f"{s:06d}" / "depth").is_dir() for s in dataset.scene_ids)
     if choice == "auto":
         if not dataset.evaluates_vsd:  # the reference has no VSD for HOT3D, IPD, XYZ-IBD ...
             log.info("AR_VSD skipped: not evaluated on %s", dataset.spec and dataset.spec.name)
             return None
-        if not available_plugins("renderer"):
+        if not installed:
             log.info("AR_VSD skipped: no depth renderer plugin installed (bopsurg[vsd] has one)")
             return None
         if not has_depth:
             log.info("AR_VSD skipped: the dataset has no depth images")
             return None
         try:
-            renderer: DepthRenderer = load_plugin("renderer")()
+            renderer: DepthRenderer = load_plugin("renderer", installed=installed)()
             return renderer
         except BopsurgError as err:
             log.warning("AR_VSD skipped: %s", err)
             return None
     if not has_depth:
         raise BopsurgError(f"VSD needs depth images; {dataset.split_dir} has no depth/ folders")
-    chosen: DepthRenderer = load_plugin("renderer", choice)()
+    chosen: DepthRenderer = load_plugin("renderer", choice, installed=installed)()
     return chosen
 
 
-def _renderer_name(renderer: DepthRenderer | None) -> str | None:
+def _renderer_name(renderer: DepthRenderer | None, installed: dict[str, EntryPoint]) -> str | None:
     if renderer is None:
         return None
-    for name, ep in available_plugins("renderer").items():
+    for name, ep in installed.items():
         if ep.value.split(":")[-1] == type(renderer).__name__:
             return name
     raise BopsurgError(f"renderer {type(renderer).__name__} is not an installed plugin")
@@ -216,16 +225,55 @@ class _Inputs:
 
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the table."""
-    from bopsurg.bop.targets import load_image_targets, load_targets
-    from bopsurg.evaluation.coco_eval import is_coco_results
-    from bopsurg.evaluation.tasks import resolve_tasks
-
     t0 = time.perf_counter()
     executor = None
     if args.executor != "local" or args.workers != 1:  # fail before any work if unavailable
         from bopsurg.executors import make_executor
 
         executor = make_executor(args.executor, workers=args.workers, ray_address=args.ray_address)
+    if executor is None and "numpy" not in sys.modules:
+        # One BLAS thread (read when numpy is imported): the VSD worker takes the other core,
+        # and the evaluation's small matrix products cost several times more CPU split over
+        # threads that wait for each other.
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    # The VSD worker starts first, before this process imports numpy, and is closed below if
+    # VSD does not run after all (a COCO file, no depth images ...).
+    installed = {} if args.renderer == "none" else available_plugins("renderer")
+    worker = _early_worker(args.renderer, installed) if executor is None else None
+    try:
+        return _run(args, executor, worker, installed, t0)
+    finally:
+        if worker is not None:
+            worker.close()
+
+
+def _early_worker(choice: str, installed: dict[str, EntryPoint]) -> VsdWorker | None:
+    """A VSD worker for the renderer that ``--renderer`` would load, if one is installed."""
+    if choice == "none":
+        return None
+    from bopsurg.evaluation.vsd_worker import VsdWorker
+
+    name = choice
+    if choice == "auto":  # the plugin load_plugin("renderer") loads
+        if not installed:
+            return None
+        name = sorted(installed)[0]
+    ep = installed.get(name)
+    return VsdWorker.start(name, "" if ep is None else f"{ep.module}:{ep.attr}")
+
+
+def _run(
+    args: argparse.Namespace,
+    executor: Executor | None,
+    worker: VsdWorker | None,
+    installed: dict[str, EntryPoint],
+    t0: float,
+) -> int:
+    """:func:`run` once the executor and the VSD worker are started."""
+    from bopsurg.bop.targets import load_image_targets, load_targets
+    from bopsurg.evaluation.coco_eval import is_coco_results
+    from bopsurg.evaluation.tasks import resolve_tasks
+
     if is_coco_results(args.results):  # 2D tasks: a COCO JSON, recognised by its content
         from bopsurg.cli.eval_coco import run_coco
 
@@ -240,44 +288,38 @@ def run(args: argparse.Namespace) -> int:
         load_detections_arg(args),  # early: a bad file fails before the evaluation
         load_targets(args.targets) if args.targets else None,
     )
-    renderer = _renderer(args.renderer, dataset)
-    # VSD starts first, on a worker process, before this one imports the evaluation (pandas,
+    renderer = _renderer(args.renderer, dataset, installed)
+    # VSD's pairs go to the worker before this process imports the evaluation (pandas,
     # scipy) and runs the rest of it.
-    started, worker = None, None
+    name = _renderer_name(renderer, installed)
+    started = None
     if renderer is not None and executor is None:
-        started, worker = _start_vsd(args, inputs, renderer)
-    try:
-        return _evaluate_and_write(args, inputs, renderer, executor, started, t0)
-    finally:
-        if worker is not None:
-            worker.close()
+        same = worker is not None and worker.renderer_name == name
+        started = _start_vsd(args, inputs, renderer, worker if same else None)
+    if worker is not None and (started is None or started.inputs.worker is not worker):
+        worker.close()  # not needed: its imports stop taking a core from this process
+    return _evaluate_and_write(args, inputs, (renderer, name), executor, started, t0)
 
 
 def _start_vsd(
-    args: argparse.Namespace, inputs: _Inputs, renderer: DepthRenderer
-) -> tuple[StartedVsd, VsdWorker | None]:
-    """VSD of the BOP19 pairs, started on a worker process with ``renderer``'s plugin (or
-    pending in this one when no worker starts), and the worker."""
+    args: argparse.Namespace,
+    inputs: _Inputs,
+    renderer: DepthRenderer,
+    worker: VsdWorker | None,
+) -> StartedVsd:
+    """VSD of the BOP19 pairs, sent to ``worker`` when it renders with ``renderer``'s plugin
+    (else pending in this process)."""
     from bopsurg.evaluation.pair_errors import ModelCache
     from bopsurg.evaluation.vsd_pairs import VsdInputs, start_vsd_early
-    from bopsurg.evaluation.vsd_worker import VsdWorker
 
     dataset = inputs.dataset
-    name = _renderer_name(renderer)
-    worker = VsdWorker.start(name) if name is not None else None
     vsd = VsdInputs(dataset, renderer, _vsd_delta(args, dataset), not args.no_progress, worker)
-    try:
-        started = start_vsd_early(
-            inputs.est,
-            dataset.targets() if inputs.targets is None else inputs.targets,
-            ModelCache(dataset, max_sym_disc_step=0.01),
-            vsd,
-        )
-    except BaseException:
-        if worker is not None:
-            worker.close()
-        raise
-    return started, worker
+    return start_vsd_early(
+        inputs.est,
+        dataset.targets() if inputs.targets is None else inputs.targets,
+        ModelCache(dataset, max_sym_disc_step=0.01),
+        vsd,
+    )
 
 
 def _vsd_delta(args: argparse.Namespace, dataset: BopDataset) -> float:
@@ -289,12 +331,13 @@ def _vsd_delta(args: argparse.Namespace, dataset: BopDataset) -> float:
 def _evaluate_and_write(
     args: argparse.Namespace,
     inputs: _Inputs,
-    renderer: DepthRenderer | None,
+    renderer_and_name: tuple[DepthRenderer | None, str | None],
     executor: Executor | None,
     started: StartedVsd | None,
     t0: float,
 ) -> int:
-    """The evaluation, its outputs and what it prints, once the inputs are loaded."""
+    """The evaluation, its outputs and what it prints, once the inputs are loaded (with the
+    renderer and its plugin's name, if any)."""
     from bopsurg._version import __version__
     from bopsurg.cli.eval_stats import early_intervals, write_intervals
     from bopsurg.evaluation.device import metric_device
@@ -303,6 +346,7 @@ def _evaluate_and_write(
     from bopsurg.evaluation.tasks import detection_evaluation, merge_task_scores
 
     tasks, dataset, est, targets = inputs.tasks, inputs.dataset, inputs.est, inputs.targets
+    renderer, renderer_name = renderer_and_name
     options = {
         "min_visib": args.min_visib,
         "vsd_delta": _vsd_delta(args, dataset),
@@ -330,7 +374,7 @@ def _evaluate_and_write(
                 est,
                 executor=executor,
                 targets=targets,
-                renderer_name=_renderer_name(renderer),
+                renderer_name=renderer_name,
                 progress=not args.no_progress,
                 **options,
             )
@@ -345,7 +389,7 @@ def _evaluate_and_write(
     write_evaluation(result, args.out, meta=meta)
     print(format_table(result.summary, result.scores))
     curves = result.curves if "bop19" in tasks else None  # BOP19 keys only with its task
-    write_intervals(result.gt_rows, det, args, curves, early)  # intervals, compare's samples
+    write_intervals(result.gt_columns, det, args, curves, early)  # intervals, compare's samples
     if args.figures:
         from bopsurg.viz.figures import figures_of_evaluation
 

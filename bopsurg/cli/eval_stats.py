@@ -11,8 +11,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
-
 from bopsurg.atomic import write_text
 from bopsurg.evaluation.bootstrap import (
     BOP19_SAMPLES_FILENAME,
@@ -25,6 +23,7 @@ from bopsurg.evaluation.bootstrap import (
 )
 from bopsurg.evaluation.bop19 import RecallCurve
 from bopsurg.evaluation.bop24 import DetectionEvaluation
+from bopsurg.evaluation.columns import Columns
 from bopsurg.evaluation.summary_ci import (
     TABLE_SAMPLES_FILENAME,
     save_table_rows,
@@ -52,7 +51,7 @@ class EarlyIntervals:
 
 
 def early_intervals(
-    gt_rows: pd.DataFrame,
+    gt_rows: Columns,
     det: DetectionEvaluation | None,
     args: argparse.Namespace,
     min_visib: float,
@@ -70,7 +69,7 @@ def early_intervals(
 
 
 def write_intervals(
-    gt_rows: pd.DataFrame,
+    gt_rows: Columns,
     det: DetectionEvaluation | None,
     args: argparse.Namespace,
     curves: dict[str, RecallCurve] | None = None,

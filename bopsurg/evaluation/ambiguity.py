@@ -19,16 +19,19 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_mask_window
+from bopsurg.evaluation.columns import Columns, as_columns, n_rows, take
 from bopsurg.evaluation.summary import describe
 from bopsurg.metrics.registry import table_metrics
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 F64 = NDArray[np.float64]
 
@@ -104,8 +107,8 @@ def _ends_on_mask(path: Path, uv: F64) -> tuple[bool, bool]:
 
 
 def instance_ambiguity(
-    dataset: BopDataset, gt_rows: pd.DataFrame, gt_R: F64, gt_t: F64, gt_K: F64
-) -> pd.DataFrame:
+    dataset: BopDataset, gt_rows: Columns, gt_R: F64, gt_t: F64, gt_K: F64
+) -> Columns:
     """``tip_visible``, ``tail_visible``, ``view_angle_deg`` for each GT row.
 
     Args:
@@ -113,44 +116,47 @@ def instance_ambiguity(
         gt_rows: Rows with ``scene_id``, ``im_id``, ``gt_id``, ``obj_id``; masks are read only
             for the rows given.
         gt_R, gt_t, gt_K: (G, 3, 3), (G, 3) mm and (G, 3, 3) of the same rows.
+
+    Returns:
+        The three (G,) float columns (NaN where unknown).
     """
-    n = len(gt_rows)
-    out = pd.DataFrame({c: np.full(n, np.nan) for c in AMBIGUITY_COLUMNS}, index=gt_rows.index)
-    obj = gt_rows["obj_id"].to_numpy()
+    n = n_rows(gt_rows)
+    out: Columns = {c: np.full(n, np.nan) for c in AMBIGUITY_COLUMNS}
+    obj = gt_rows["obj_id"]
     for obj_id in np.unique(obj):
         sel = np.flatnonzero(obj == obj_id)
         info = dataset.models_info[int(obj_id)]
         pts = dataset.model(int(obj_id)).pts
         tip, tail = model_keypoints(info, pts)
         normal = model_plane_normal(info, pts)
-        out.iloc[sel, 2] = view_angle_deg(gt_R[sel], gt_t[sel], normal)
+        out["view_angle_deg"][sel] = view_angle_deg(gt_R[sel], gt_t[sel], normal)
         cam_pts = np.einsum("nij,kj->nki", gt_R[sel], np.stack([tip, tail])) + gt_t[sel][:, None, :]
         uvw = np.einsum("nij,nkj->nki", gt_K[sel], cam_pts)
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = uvw[..., :2] / uvw[..., 2:3]
         uv[uvw[..., 2] <= 0] = np.nan  # behind the camera: not visible
-        rows = gt_rows.iloc[sel]
-        scene_ids = rows["scene_id"].to_numpy()
+        rows = take(gt_rows, sel)
+        scene_ids = rows["scene_id"]
         # Only scenes with masks cost a file read per instance; decide that once per scene.
         with_masks = {
             int(sid): (dataset.scene(int(sid)).scene_dir / "mask_visib").is_dir()
             for sid in np.unique(scene_ids)
         }
         masked = [sid for sid, has in with_masks.items() if has]
-        im_ids, gt_ids = rows["im_id"].to_numpy(), rows["gt_id"].to_numpy()
-        ends = np.full((sel.size, 2), np.nan)  # filled in numpy: per-cell pandas writes are slow
+        im_ids, gt_ids = rows["im_id"], rows["gt_id"]
+        ends = np.full((sel.size, 2), np.nan)
         for k in np.flatnonzero(np.isin(scene_ids, masked)):
             scene = dataset.scene(int(scene_ids[k]))
             path = scene.mask_visib_path(int(im_ids[k]), int(gt_ids[k]))
             if not path.exists():
                 continue
             ends[k] = _ends_on_mask(path, uv[k])
-        out.iloc[sel, 0] = ends[:, 0]
-        out.iloc[sel, 1] = ends[:, 1]
+        out["tip_visible"][sel] = ends[:, 0]
+        out["tail_visible"][sel] = ends[:, 1]
     return out
 
 
-def ambiguity_splits(rows: pd.DataFrame) -> dict[str, dict[str, dict[str, float]]]:
+def ambiguity_splits(rows: Columns | pd.DataFrame) -> dict[str, dict[str, dict[str, float]]]:
     """The paper's statistics of its table's metrics split by ends visible, view angle,
     visibility.
 
@@ -162,29 +168,31 @@ def ambiguity_splits(rows: pd.DataFrame) -> dict[str, dict[str, dict[str, float]
     Returns:
         ``{split: {group: {"n", "re_median", "te_median", "mssd_median", "mssd_mean"}}}``.
     """
-    has = rows["re"].notna()
-    r = rows[has]
-    groups: dict[str, dict[str, pd.Series]] = {
+    cols = as_columns(rows)
+    r = take(cols, ~np.isnan(cols["re"]))
+    tip, tail = r["tip_visible"], r["tail_visible"]
+    groups: dict[str, dict[str, NDArray[np.bool_]]] = {
         "ends_visible": {},
         "view_angle": {},
         "visibility": {},
     }
-    ends = r["tip_visible"].fillna(-1) + r["tail_visible"].fillna(-1)
-    known = r["tip_visible"].notna() & r["tail_visible"].notna()
+    ends = np.where(np.isnan(tip), -1, tip) + np.where(np.isnan(tail), -1, tail)
+    known = ~np.isnan(tip) & ~np.isnan(tail)
     for label, cond in (("both", ends == 2), ("one", ends == 1), ("none", ends == 0)):
         groups["ends_visible"][label] = known & cond
+    angle, visib = r["view_angle_deg"], r["visib_fract"]
     for lo, hi, label in VIEW_ANGLE_BINS:
-        groups["view_angle"][label] = (r["view_angle_deg"] >= lo) & (r["view_angle_deg"] < hi)
+        groups["view_angle"][label] = (angle >= lo) & (angle < hi)
     for lo, hi, label in VISIB_BINS:
-        groups["visibility"][label] = (r["visib_fract"] >= lo) & (r["visib_fract"] < hi)
+        groups["visibility"][label] = (visib >= lo) & (visib < hi)
     out: dict[str, dict[str, dict[str, float]]] = {}
     for split, parts in groups.items():
         out[split] = {}
         for label, mask in parts.items():
-            g = r[mask.to_numpy()]
-            stats: dict[str, float] = {"n": len(g)}
+            g = take(r, mask)
+            stats: dict[str, float] = {"n": int(mask.sum())}
             for metric in table_metrics():
-                stats[f"{metric.name}_median"] = describe(g[metric.name].to_numpy())["median"]
-            stats["mssd_mean"] = describe(g["mssd"].to_numpy())["mean"]
+                stats[f"{metric.name}_median"] = describe(g[metric.name])["median"]
+            stats["mssd_mean"] = describe(g["mssd"])["mean"]
             out[split][label] = stats
     return out

@@ -41,6 +41,10 @@ I64 = NDArray[np.int64]
 SAMPLES_FILENAME = "bootstrap_bop24.npz"
 #: Elements of one (replicates x estimates) block; bounds the memory of a replicate batch.
 _BLOCK = 1 << 22
+#: Elements of one (replicates x rankings x length) block of :func:`weighted_ap_runs`: small
+#: blocks reuse the same memory, where large fresh arrays cost more in page faults than in
+#: arithmetic.
+_RUNS_BLOCK = 1 << 16
 
 
 @dataclass
@@ -216,24 +220,75 @@ def _first_reaching(tp_cum: F64, total: F64) -> I64:
     return out
 
 
+def weighted_ap_runs(weights: F64, runs: list[tuple[I64, NDArray[np.bool_]]], total: F64) -> F64:
+    """:func:`weighted_ap` of several rankings at once (the same numbers, bit for bit).
+
+    Args:
+        weights: (B, I) weight of each image in each replicate.
+        runs: R rankings: (image index of each ranked estimate, its TP flag).
+        total: (B, R) weighted target count of each ranking's object.
+
+    Returns:
+        (B, R) APs.
+
+    The rankings are padded to one length with an image of weight 0 and no TP; every
+    position is a point whose precision counts only at a TP (elsewhere 0): a point that is
+    not a TP never raises an interpolated precision (see :func:`weighted_ap`), and maxima
+    are exact, so the APs equal those of the TP points alone. The first point reaching each
+    recall point is counted rather than searched: the recall points at or below each
+    point's recall (a search in the 101 of them), histogrammed per ranking and summed.
+    """
+    b, n_runs = total.shape
+    length = max((len(img) for img, _ in runs), default=0)
+    if n_runs == 0 or length == 0:
+        return np.where(total > 0, 0.0, np.nan)
+    img = np.full((n_runs, length), weights.shape[1], dtype=np.int64)  # the padding image
+    tp = np.zeros((n_runs, length), dtype=bool)
+    for r, (im, flags) in enumerate(runs):
+        img[r, : len(im)] = im
+        tp[r, : len(im)] = flags
+    padded = np.concatenate([weights, np.zeros((b, 1), dtype=weights.dtype)], axis=1)
+    safe = np.where(total > 0, total, 1.0)
+    n_points = RECALL_POINTS.size
+    ap = np.empty((b, n_runs))
+    step = max(1, _RUNS_BLOCK // (n_runs * length))
+    for s in range(0, b, step):  # replicate batches bound the memory
+        w = padded[s : s + step][:, img]  # (b', R, L)
+        n_cum = np.cumsum(w, axis=2).astype(np.float64, copy=False)
+        tp_cum = np.cumsum(np.where(tp, w, 0), axis=2).astype(np.float64, copy=False)
+        pre = np.divide(tp_cum, n_cum, out=np.zeros_like(tp_cum), where=(n_cum > 0) & tp)
+        reversed_best = np.maximum.accumulate(pre[..., ::-1], axis=2)  # best_after, reversed
+        # first[i]: the points whose recall is below recall point i (recalls are sorted)
+        below = np.searchsorted(RECALL_POINTS, tp_cum / safe[s : s + step, :, None], "right")
+        rows = np.arange(below.shape[0] * n_runs).reshape(-1, n_runs, 1) * (n_points + 1)
+        hist = np.bincount((below + rows).ravel(), minlength=rows.size * (n_points + 1))
+        first = np.cumsum(hist.reshape(-1, n_runs, n_points + 1)[..., :n_points], axis=2)
+        at = length - 1 - np.minimum(first, length - 1)
+        interp = np.take_along_axis(reversed_best, at, axis=2)
+        ap[s : s + step] = np.where(first < length, interp, 0.0).mean(axis=2)
+    return np.where(total > 0, ap, np.nan)
+
+
 def replicate_scores(samples: DetectionSamples, weights: F64) -> dict[str, F64]:
     """The BOP24/BOP25 scores (reference keys) under each row of image weights: (B,) each."""
     b = weights.shape[0]
     total = weights @ samples.targets  # (B, O)
+    n_obj = samples.targets.shape[1]
+    runs: list[tuple[I64, NDArray[np.bool_]]] = []
+    run_obj: list[int] = []
+    for thresholds in samples.error_types.values():  # runs: error type, object, threshold
+        for k in range(n_obj):
+            for _ in thresholds:
+                lo, hi = samples.offsets[len(runs)], samples.offsets[len(runs) + 1]
+                runs.append((samples.est_image[lo:hi], samples.est_tp[lo:hi]))
+                run_obj.append(k)
+    ap_runs = weighted_ap_runs(weights, runs, total[:, run_obj])
     mean_ap: dict[str, F64] = {}
     run = 0
     for name, thresholds in samples.error_types.items():
-        n_obj, n_th = samples.targets.shape[1], len(thresholds)
-        ap = np.empty((b, n_obj, n_th))
-        for k in range(n_obj):
-            for j in range(n_th):
-                lo, hi = samples.offsets[run], samples.offsets[run + 1]
-                img, tp = samples.est_image[lo:hi], samples.est_tp[lo:hi]
-                step = max(1, _BLOCK // max(img.size, 1))
-                for s in range(0, b, step):  # replicate batches bound the memory
-                    w = weights[s : s + step]
-                    ap[s : s + step, k, j] = weighted_ap(w[:, img], tp, total[s : s + step, k])
-                run += 1
+        n_th = len(thresholds)
+        ap = np.ascontiguousarray(ap_runs[:, run : run + n_obj * n_th]).reshape(b, n_obj, n_th)
+        run += n_obj * n_th
         per_obj = ap.mean(axis=2)
         with warnings.catch_warnings():  # a replicate without targets: NaN, no warning
             warnings.simplefilter("ignore", RuntimeWarning)

@@ -22,12 +22,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from bopsurg.bop.results import PoseEstimates
 from bopsurg.bop.targets import Target
 from bopsurg.evaluation.bop19_pairs import KeptPairs, PairTable, kept_pairs_of_targets
+from bopsurg.evaluation.columns import Columns, match_rows, pick
 from bopsurg.evaluation.matching import greedy_match
 from bopsurg.evaluation.pair_errors import ModelCache, pair_errors
 from bopsurg.evaluation.tables import GtTable
@@ -147,7 +147,7 @@ def recall_curves(
     targets: Sequence[Target],
     models: ModelCache,
     *,
-    pair_mssd: pd.DataFrame,
+    pair_mssd: Columns,
     vsd_inputs: VsdInputs | None = None,
     kept: KeptPairs | None = None,
     vsd: PendingVsd | None = None,
@@ -160,7 +160,7 @@ def recall_curves(
         targets: The BOP19 targets.
         models: Model points, symmetries and diameters.
         pair_mssd: MSSD (mm) of candidate pairs already computed (columns ``e``, ``g``,
-            ``mssd``); every kept pair must be among them.
+            ``mssd``, or a DataFrame of them); every kept pair must be among them.
         vsd_inputs: Depth renderer and dataset for VSD; None: no VSD curve.
         kept: The targets' kept pairs, when already computed
             (:func:`~bopsurg.evaluation.bop19_pairs.kept_pairs_of_targets`).
@@ -172,10 +172,8 @@ def recall_curves(
     pairs, valid, diam = kept.pairs, kept.valid, kept.diameter
     e_idx, g_idx = pairs.est_index, pairs.gt_index
     errs = pair_errors(est, gt, e_idx, g_idx, models, ("te", "mspd"))
-    known = pd.Series(
-        pair_mssd["mssd"].to_numpy(), index=pd.MultiIndex.from_frame(pair_mssd[["e", "g"]])
-    )
-    errs["mssd"] = known.reindex(pd.MultiIndex.from_arrays([e_idx, g_idx])).to_numpy()
+    known = match_rows((e_idx, g_idx), (np.asarray(pair_mssd["e"]), np.asarray(pair_mssd["g"])))
+    errs["mssd"] = pick(np.asarray(pair_mssd["mssd"], dtype=np.float64), known)
     ims = np.stack([gt.scene_id, gt.im_id], axis=1).astype(np.int64)
     mssd = normalise_mssd(errs["mssd"], errs["te"], diam)
     mspd = normalise_mspd(errs["mspd"], gt.im_width[g_idx])

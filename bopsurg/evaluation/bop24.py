@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from bopsurg import metrics
@@ -35,8 +34,9 @@ from bopsurg.bop.results import PoseEstimates, average_time_per_image
 from bopsurg.bop.targets import ImageTarget
 from bopsurg.errors import DatasetError
 from bopsurg.evaluation import bop19, device
+from bopsurg.evaluation.columns import Columns, group_labels, join_pairs, match_rows
 from bopsurg.evaluation.matching import greedy_match
-from bopsurg.evaluation.tables import GtTable, estimates_frame, load_gt_table, rank_within_groups
+from bopsurg.evaluation.tables import GtTable, load_gt_table, rank_in_groups
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -139,30 +139,26 @@ class DetectionInputs:
     gt_im_pos: I64
 
 
-def _target_images(
-    dataset: BopDataset, gt: GtTable, targets: Sequence[ImageTarget]
-) -> pd.DataFrame:
-    """Target images with their position keys (scene by first appearance, then image)."""
-    tdf = pd.DataFrame(
-        {"scene_id": [t.scene_id for t in targets], "im_id": [t.im_id for t in targets]},
-        dtype=np.int64,
-    )
+def _target_images(dataset: BopDataset, gt: GtTable, targets: Sequence[ImageTarget]) -> Columns:
+    """Target images (``scene_id``, ``im_id``, once each, in target order) with their
+    position keys ``scene_pos`` (scene by first appearance) and ``im_pos`` (row)."""
     # The reference organises targets as {scene: {image: ...}} in insertion order.
-    scene_pos = {s: k for k, s in enumerate(dict.fromkeys(tdf["scene_id"].tolist()))}
-    tdf = tdf.drop_duplicates(keep="first").reset_index(drop=True)
-    tdf["scene_pos"] = tdf["scene_id"].map(scene_pos).astype(np.int64)
-    tdf["im_pos"] = np.arange(len(tdf), dtype=np.int64)
+    images = list(dict.fromkeys((int(t.scene_id), int(t.im_id)) for t in targets))
+    scene_pos = {s: k for k, s in enumerate(dict.fromkeys(s for s, _ in images))}
     have = set(zip(gt.scene_id.tolist(), gt.im_id.tolist(), strict=True)) | set(gt.images)
-    missing = [
-        (s, i) for s, i in zip(tdf["scene_id"], tdf["im_id"], strict=True) if (s, i) not in have
-    ]
+    missing = [(s, i) for s, i in images if (s, i) not in have]
     if missing:
         s, i = missing[0]
         raise DatasetError(
             f"target image {i} of scene {s} is not in the split ({len(missing)} such targets)",
             path=dataset.root,
         )
-    return tdf
+    return {
+        "scene_id": np.array([s for s, _ in images], dtype=np.int64),
+        "im_id": np.array([i for _, i in images], dtype=np.int64),
+        "scene_pos": np.array([scene_pos[s] for s, _ in images], dtype=np.int64),
+        "im_pos": np.arange(len(images), dtype=np.int64),
+    }
 
 
 def prepare(
@@ -175,59 +171,54 @@ def prepare(
 ) -> DetectionInputs:
     """Cap the estimates per image, select the evaluated ones and their candidate pairs."""
     # 1. Per image, the max_per_image best (score descending, ties in file order).
-    img_rank, _ = rank_within_groups(
-        pd.DataFrame({"s": estimates.scene_id, "i": estimates.im_id}), estimates.score
-    )
+    img_rank, _ = rank_in_groups(group_labels(estimates.scene_id, estimates.im_id), estimates.score)
     kept_rows = np.flatnonzero(img_rank < max_per_image)
     if gt is None:
         gt = load_gt_table(dataset, sorted({t.scene_id for t in targets}))
     tdf = _target_images(dataset, gt, targets)
+    t_keys = (tdf["scene_id"], tdf["im_id"])
 
-    # 2. GT of the target images; object order of each image = first appearance in its GT.
-    gdf = gt.frame().merge(tdf, on=["scene_id", "im_id"], how="inner").sort_values("g")
-    first_gt = gdf.groupby(["scene_id", "im_id", "obj_id"], sort=False)["gt_id"].min()
-    obj_pos = first_gt.rename("obj_pos").reset_index()
+    # 2. GT of the target images (by row); object order of each image = its first gt_id.
+    t_of_gt = match_rows((gt.scene_id, gt.im_id), t_keys)
+    in_targets = np.flatnonzero(t_of_gt >= 0)
+    g_keys = (gt.scene_id[in_targets], gt.im_id[in_targets], gt.obj_id[in_targets])
+    g_group = group_labels(*g_keys)
+    first_gt = np.full(int(g_group.max(initial=-1)) + 1, np.iinfo(np.int64).max)
+    np.minimum.at(first_gt, g_group, gt.gt_id[in_targets])
 
-    # 3. Estimates of target images whose object is in the image's GT.
-    edf = estimates_frame(estimates).iloc[kept_rows]
-    edf = edf.merge(tdf, on=["scene_id", "im_id"], how="inner")
-    edf = edf.merge(obj_pos, on=["scene_id", "im_id", "obj_id"], how="inner")
-    edf = edf.sort_values("e").reset_index(drop=True)
-    rank, _ = rank_within_groups(edf[["scene_id", "im_id", "obj_id"]], edf["score"].to_numpy())
-    edf["rank"] = rank
+    # 3. Estimates of target images whose object is in the image's GT, by row.
+    e = kept_rows
+    t_of_e = match_rows((estimates.scene_id[e], estimates.im_id[e]), t_keys)
+    e = e[t_of_e >= 0]
+    t_of_e = t_of_e[t_of_e >= 0]
+    e_keys = (estimates.scene_id[e], estimates.im_id[e], estimates.obj_id[e])
+    o_of_e = match_rows(e_keys, tuple(np.unique(np.stack(g_keys, 1), axis=0).T))
+    e, t_of_e, o_of_e = e[o_of_e >= 0], t_of_e[o_of_e >= 0], o_of_e[o_of_e >= 0]
+    score = estimates.score[e]
+    obj_pos = first_gt[o_of_e]
+    im_pos, scene_pos = tdf["im_pos"][t_of_e], tdf["scene_pos"][t_of_e]
+    e_keys = (estimates.scene_id[e], estimates.im_id[e], estimates.obj_id[e])
+    rank, _ = rank_in_groups(group_labels(*e_keys), score)
     # Reference order: the errors files list scene, image (target order), object (GT
     # order), then estimates by score; a stable sort by score then gives the AP ranking.
-    order = np.lexsort(
-        (
-            edf["rank"].to_numpy(),
-            edf["obj_pos"].to_numpy(),
-            edf["im_pos"].to_numpy(),
-            edf["scene_pos"].to_numpy(),
-            -edf["score"].to_numpy(),
-        )
-    )
-    pairs = edf[["scene_id", "im_id", "obj_id", "e", "rank"]].merge(
-        gdf[["scene_id", "im_id", "obj_id", "gt_id", "g"]],
-        on=["scene_id", "im_id", "obj_id"],
-        how="inner",
-    )
-    pairs = pairs.sort_values(["e", "gt_id"], kind="stable")
+    order = np.lexsort((rank, obj_pos, im_pos, scene_pos, -score))
+    pe, pg = join_pairs(e_keys, g_keys, gt.gt_id[in_targets])
     is_target = np.zeros(len(gt), dtype=bool)
-    in_targets = gdf["g"].to_numpy()
     is_target[in_targets] = gt.visib_fract[in_targets] >= MIN_VISIB
     gt_im_pos = np.full(len(gt), -1, dtype=np.int64)
-    gt_im_pos[in_targets] = gdf["im_pos"].to_numpy(np.int64)
+    gt_im_pos[in_targets] = tdf["im_pos"][t_of_gt[in_targets]]
     return DetectionInputs(
-        order=edf["e"].to_numpy(np.int64)[order],
-        order_obj_id=edf["obj_id"].to_numpy(np.int64)[order],
-        pair_rank=pairs["rank"].to_numpy(np.int64),
-        pair_est=pairs["e"].to_numpy(np.int64),
-        pair_gt=pairs["g"].to_numpy(np.int64),
+        order=e[order],
+        order_obj_id=estimates.obj_id[e][order],
+        pair_rank=rank[pe],
+        pair_est=e[pe],
+        pair_gt=in_targets[pg],
         gt=gt,
         is_target=is_target,
         kept=estimates.subset(kept_rows),
-        images=tdf[["scene_id", "im_id"]].to_numpy(np.int64).reshape(-1, 2),
-        order_im_pos=edf["im_pos"].to_numpy(np.int64)[order],
+        # column-major, as a DataFrame's columns: the samples file keeps its bytes
+        images=np.asfortranarray(np.stack([tdf["scene_id"], tdf["im_id"]], axis=1)),
+        order_im_pos=im_pos[order],
         gt_im_pos=gt_im_pos,
     )
 

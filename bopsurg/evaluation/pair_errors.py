@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.results import PoseEstimates
 from bopsurg.evaluation import device
+from bopsurg.evaluation.columns import join_pairs
 from bopsurg.evaluation.tables import GtTable
 from bopsurg.metrics.registry import Need, PairBatch, metric
 from bopsurg.metrics.symmetry import Symmetries, symmetry_transforms
@@ -65,6 +66,14 @@ def candidate_pairs(est_df: pd.DataFrame, gt: GtTable) -> pd.DataFrame:
     """
     pairs = est_df.merge(gt.frame(), on=["scene_id", "im_id", "obj_id"], how="inner")
     return pairs.sort_values(["e", "gt_id"], kind="stable").reset_index(drop=True)
+
+
+def candidate_pair_indices(est: PoseEstimates, gt: GtTable) -> tuple[I64, I64]:
+    """:func:`candidate_pairs` as (P,) estimate rows and (P,) GT rows, in numpy: all pairs of
+    the same object in the same image, by estimate then gt_id."""
+    return join_pairs(
+        (est.scene_id, est.im_id, est.obj_id), (gt.scene_id, gt.im_id, gt.obj_id), gt.gt_id
+    )
 
 
 def pair_errors(

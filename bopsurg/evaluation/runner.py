@@ -25,10 +25,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
-from tqdm import tqdm
+from numpy.typing import NDArray
 
-from bopsurg.atomic import atomic_path, write_text
+from bopsurg.atomic import write_text
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.results import PoseEstimates, average_time_per_image
 from bopsurg.bop.targets import Target
@@ -36,10 +35,19 @@ from bopsurg.errors import BopsurgError
 from bopsurg.evaluation import bop19
 from bopsurg.evaluation.ambiguity import AMBIGUITY_COLUMNS, ambiguity_splits, instance_ambiguity
 from bopsurg.evaluation.bop19_pairs import KeptPairs, kept_pairs_of_targets
+from bopsurg.evaluation.columns import (
+    Columns,
+    FrameField,
+    concat,
+    csv_text,
+    group_labels,
+    pick,
+    take,
+)
 from bopsurg.evaluation.matching import greedy_match
-from bopsurg.evaluation.pair_errors import ModelCache, candidate_pairs, pair_errors
+from bopsurg.evaluation.pair_errors import ModelCache, candidate_pair_indices, pair_errors
 from bopsurg.evaluation.summary import paper_summary
-from bopsurg.evaluation.tables import GtTable, estimates_frame, load_gt_table, rank_within_groups
+from bopsurg.evaluation.tables import GtTable, load_gt_table, rank_in_groups
 from bopsurg.evaluation.vsd_pairs import PendingVsd, StartedVsd, VsdInputs, start_vsd
 from bopsurg.metrics.registry import METRICS
 from bopsurg.plugins import DepthRenderer, load_plugin
@@ -48,6 +56,8 @@ if TYPE_CHECKING:  # only a type here: the default (local) run loads no multipro
     from bopsurg.executors import Executor
 
 log = logging.getLogger(__name__)
+
+I64 = NDArray[np.int64]
 
 #: The leading columns of errors.csv: the estimate and the GT instance it was matched to.
 ID_COLUMNS = ("scene_id", "im_id", "obj_id", "gt_id", "score", "visib_fract")
@@ -70,29 +80,40 @@ class Evaluation:
             (:func:`~bopsurg.evaluation.summary.paper_summary`).
         scores: BOP19 scores under the reference toolkit's key names.
         curves: Recall curves per BOP error type.
+
+    ``errors`` and ``gt_rows`` are kept as numpy columns (:attr:`error_columns`,
+    :attr:`gt_columns`); reading them as DataFrames imports pandas (given either).
     """
 
-    errors: pd.DataFrame
-    gt_rows: pd.DataFrame
     summary: dict[str, object]
     scores: dict[str, float]
     curves: dict[str, bop19.RecallCurve]
+    # descriptors, not shared defaults: each instance keeps its own columns (required fields)
+    errors: FrameField = FrameField()  # noqa: RUF009
+    gt_rows: FrameField = FrameField()  # noqa: RUF009
+
+    @property
+    def error_columns(self) -> Columns:
+        """errors.csv rows as numpy columns."""
+        return FrameField.columns(self, "errors")
+
+    @property
+    def gt_columns(self) -> Columns:
+        """The per-GT rows as numpy columns."""
+        return FrameField.columns(self, "gt_rows")
 
 
 def _instance_matching(
     est: PoseEstimates, gt: GtTable, models: ModelCache, which: Sequence[str]
-) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
-    """Matching 1 (see the module docstring): errors.csv rows, per-GT rows, and the MSSD of
-    every candidate pair (columns e, g, mssd) for the BOP scores to reuse."""
-    est_df = estimates_frame(est)
-    rank, _ = rank_within_groups(est_df[["scene_id", "im_id", "obj_id"]], est.score)
-    est_df["rank"] = rank
-    pairs = candidate_pairs(est_df, gt)
-    e_idx = pairs["e"].to_numpy()
-    g_idx = pairs["g"].to_numpy()
+) -> tuple[Columns, Columns, Columns, I64]:
+    """Matching 1 (see the module docstring): errors.csv rows, per-GT rows, the MSSD of
+    every candidate pair (columns e, g, mssd) for the BOP scores to reuse, and the GT row
+    of each errors.csv row (-1: none)."""
+    rank, _ = rank_in_groups(group_labels(est.scene_id, est.im_id, est.obj_id), est.score)
+    e_idx, g_idx = candidate_pair_indices(est, gt)
     mssd_all = pair_errors(est, gt, e_idx, g_idx, models, ("mssd",))["mssd"]
     matched_by = greedy_match(
-        pairs["rank"].to_numpy(), e_idx, g_idx, mssd_all, np.inf, np.ones(len(gt), dtype=bool)
+        rank[e_idx], e_idx, g_idx, mssd_all, np.inf, np.ones(len(gt), dtype=bool)
     )
     gt_ok = np.flatnonzero(matched_by >= 0)
     p = matched_by[gt_ok]
@@ -104,37 +125,40 @@ def _instance_matching(
     n_est = len(est)
     gt_of_est = np.full(n_est, -1, dtype=np.int64)
     gt_of_est[m_e] = m_g
-    rows = pd.DataFrame(
-        {
-            "scene_id": est.scene_id,
-            "im_id": est.im_id,
-            "obj_id": est.obj_id,
-            "gt_id": np.where(gt_of_est >= 0, gt.gt_id[np.maximum(gt_of_est, 0)], -1),
-            "score": est.score,
-            "visib_fract": np.where(
-                gt_of_est >= 0, gt.visib_fract[np.maximum(gt_of_est, 0)], np.nan
-            ),
-        }
-    )
+    matched = gt_of_est >= 0
+    rows: Columns = {
+        "scene_id": est.scene_id,
+        "im_id": est.im_id,
+        "obj_id": est.obj_id,
+        "gt_id": np.where(matched, gt.gt_id[np.maximum(gt_of_est, 0)], -1),
+        "score": est.score,
+        "visib_fract": np.where(matched, gt.visib_fract[np.maximum(gt_of_est, 0)], np.nan),
+    }
     for name in METRICS:
         col = np.full(n_est, np.nan)
         if name in errs:
             col[m_e] = errs[name]
         rows[name] = col
-    rows = rows.sort_values(["scene_id", "im_id", "obj_id", "gt_id"], kind="stable")
+    order = np.lexsort((rows["gt_id"], est.obj_id, est.im_id, est.scene_id))  # stable
 
-    gt_rows = gt.frame().drop(columns="g")
-    gt_rows["visib_fract"] = gt.visib_fract
-    gt_rows["diameter"] = models.diameters(gt.obj_id)
-    gt_rows["est_row"] = -1
-    gt_rows.loc[m_g, "est_row"] = m_e
+    est_row = np.full(len(gt), -1, dtype=np.int64)
+    est_row[m_g] = m_e
+    gt_rows: Columns = {
+        "scene_id": gt.scene_id,
+        "im_id": gt.im_id,
+        "gt_id": gt.gt_id,
+        "obj_id": gt.obj_id,
+        "visib_fract": gt.visib_fract,
+        "diameter": models.diameters(gt.obj_id),
+        "est_row": est_row,
+    }
     for name in METRICS:
         col = np.full(len(gt), np.nan)
         if name in errs:
             col[m_g] = errs[name]
         gt_rows[name] = col
-    pair_mssd = pd.DataFrame({"e": e_idx, "g": g_idx, "mssd": mssd_all})
-    return rows.reset_index(drop=True), gt_rows, pair_mssd
+    pair_mssd: Columns = {"e": e_idx, "g": g_idx, "mssd": mssd_all}
+    return take(rows, order), gt_rows, pair_mssd, gt_of_est[order]
 
 
 def begin_evaluation(
@@ -177,12 +201,14 @@ def begin_evaluation(
             estimates = estimates.subset(np.isin(estimates.scene_id, sorted(keep)))
         kept = kept_pairs_of_targets(estimates, gt, targets, models.diameters)
         pending = None if vsd_inputs is None else start_vsd(estimates, gt, kept, vsd_inputs)
-    errors, gt_rows, pair_mssd = _instance_matching(estimates, gt, models, instance_metrics)
+    errors, gt_rows, pair_mssd, gt_of_row = _instance_matching(
+        estimates, gt, models, instance_metrics
+    )
     amb = instance_ambiguity(dataset, gt_rows, gt.R, gt.t, gt.K)
-    gt_rows = gt_rows.join(amb)
+    gt_rows.update(amb)
     # errors.csv rows carry the ambiguity of the GT they were matched to
-    key = ["scene_id", "im_id", "obj_id", "gt_id"]
-    errors = errors.merge(gt_rows[[*key, *amb.columns]], on=key, how="left")
+    for name, col in amb.items():
+        errors[name] = pick(col, gt_of_row)
     return EvaluationInProgress(
         estimates, gt, targets, models, kept, vsd_inputs, pending, errors, gt_rows, pair_mssd,
         min_visib,
@@ -201,9 +227,9 @@ class EvaluationInProgress:
     kept: KeptPairs
     vsd_inputs: VsdInputs | None
     vsd: PendingVsd | None
-    errors: pd.DataFrame
-    gt_rows: pd.DataFrame
-    pair_mssd: pd.DataFrame
+    errors: Columns
+    gt_rows: Columns
+    pair_mssd: Columns
     min_visib: float
 
     def finish(self) -> Evaluation:
@@ -274,8 +300,8 @@ def evaluate(
 
 
 def _assemble(
-    errors: pd.DataFrame,
-    gt_rows: pd.DataFrame,
+    errors: Columns,
+    gt_rows: Columns,
     curves: dict[str, bop19.RecallCurve],
     estimates: PoseEstimates,
     min_visib: float,
@@ -291,10 +317,10 @@ def _assemble(
         )
     scores["bop19_average_time_per_image"] = average_time_per_image(estimates)
     summary = paper_summary(gt_rows, min_visib=min_visib)
-    summary["splits"] = ambiguity_splits(gt_rows[gt_rows["visib_fract"] >= min_visib])
+    summary["splits"] = ambiguity_splits(take(gt_rows, gt_rows["visib_fract"] >= min_visib))
     summary["estimates"] = len(estimates)
     summary["unmatched_estimates"] = int((errors["gt_id"] < 0).sum())
-    return Evaluation(errors, gt_rows, summary, scores, curves)
+    return Evaluation(summary, scores, curves, errors=errors, gt_rows=gt_rows)
 
 
 @dataclass(frozen=True)
@@ -366,6 +392,8 @@ def evaluate_distributed(
                 dataset_name="none" if dataset.spec is None else dataset.spec.name,
             )
         )
+    from tqdm import tqdm
+
     with tqdm(total=len(ids), unit="scene", desc="eval", disable=not progress) as bar:
         parts: list[Evaluation] = executor.map(_eval_unit, units, on_progress=bar.update)
     curves: dict[str, bop19.RecallCurve] = {}
@@ -384,8 +412,8 @@ def evaluate_distributed(
             first.extra,
         )
         bop19.merge_image_counts(curves[name], [p.curves[name] for p in parts])
-    errors = pd.concat([p.errors for p in parts], ignore_index=True)
-    gt_rows = pd.concat([p.gt_rows for p in parts], ignore_index=True)
+    errors = concat([p.error_columns for p in parts])
+    gt_rows = concat([p.gt_columns for p in parts])
     min_visib = float(options.get("min_visib", 0.3))  # type: ignore[arg-type]
     return _assemble(errors, gt_rows, curves, estimates, min_visib)
 
@@ -407,8 +435,8 @@ def write_evaluation(
     """Write ``errors.csv``, ``summary.json`` and ``scores.json`` into ``out_dir`` atomically."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / "errors.csv") as tmp:
-        result.errors.loc[:, list(error_columns())].to_csv(tmp, index=False, float_format="%.9g")
+    columns = {name: result.error_columns[name] for name in error_columns()}
+    write_text(out / "errors.csv", csv_text(columns, float_format="%.9g"))
     summary = {**(meta or {}), **result.summary}
     text = json.dumps(_json_safe(summary), indent=2, allow_nan=False)
     write_text(out / "summary.json", text + "\n")

@@ -10,10 +10,15 @@ instance counts as a failure, and the ADD / ADD-S AUC.
 
 from __future__ import annotations
 
-import numpy as np
-import pandas as pd
+from typing import TYPE_CHECKING
 
+import numpy as np
+
+from bopsurg.evaluation.columns import Columns, as_columns, n_rows, take
 from bopsurg.metrics.registry import METRICS, table_metrics
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: Absolute-threshold recalls: (metric, threshold in the metric's unit), reported as
 #: ``"{metric}<{threshold}{unit}"``, e.g. ``mssd<1mm``.
@@ -70,7 +75,7 @@ def auc(errors: np.ndarray, max_threshold: np.ndarray, steps: int = AUC_STEPS) -
     return float(acc.mean())
 
 
-def paper_summary(gt_rows: pd.DataFrame, *, min_visib: float = 0.3) -> dict[str, object]:
+def paper_summary(gt_rows: Columns | pd.DataFrame, *, min_visib: float = 0.3) -> dict[str, object]:
     """The paper's table and the extra scores over GT instances with visibility ≥ min_visib.
 
     Args:
@@ -84,18 +89,16 @@ def paper_summary(gt_rows: pd.DataFrame, *, min_visib: float = 0.3) -> dict[str,
         "recall": {label: value}, "{metric}_auc" for each metric with ``auc`` (``add_auc``,
         ``adi_auc``)}``.
     """
-    sel = gt_rows[gt_rows["visib_fract"] >= min_visib]
-    has_est = sel["re"].notna()
-    table = {
-        m.name: {"unit": m.unit, **describe(sel.loc[has_est, m.name].to_numpy())}
-        for m in table_metrics()
-    }
-    n = len(sel)
+    rows = as_columns(gt_rows)
+    sel = take(rows, rows["visib_fract"] >= min_visib)
+    has_est = ~np.isnan(sel["re"])
+    table = {m.name: {"unit": m.unit, **describe(sel[m.name][has_est])} for m in table_metrics()}
+    n = n_rows(sel)
     recall: dict[str, float] = {}
     for name, th in ABS_THRESHOLDS:
-        v = sel[name].to_numpy(dtype=np.float64)
+        v = np.asarray(sel[name], dtype=np.float64)
         recall[recall_label(name, th)] = float(np.count_nonzero(v < th) / n) if n else float("nan")
-    max_th = AUC_MAX_FRACTION * sel["diameter"].to_numpy(dtype=np.float64)
+    max_th = AUC_MAX_FRACTION * np.asarray(sel["diameter"], dtype=np.float64)
     out: dict[str, object] = {
         "min_visib": min_visib,
         "gt_instances": int(n),
@@ -106,7 +109,7 @@ def paper_summary(gt_rows: pd.DataFrame, *, min_visib: float = 0.3) -> dict[str,
     }
     for m in METRICS.values():
         if m.auc:
-            out[f"{m.name}_auc"] = auc(sel[m.name].to_numpy(dtype=np.float64), max_th)
+            out[f"{m.name}_auc"] = auc(np.asarray(sel[m.name], dtype=np.float64), max_th)
     return out
 
 

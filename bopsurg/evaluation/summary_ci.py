@@ -11,10 +11,9 @@ all replicates at once. Min and max get no interval (a bootstrap cannot go beyon
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from bopsurg.atomic import atomic_path
@@ -25,6 +24,14 @@ from bopsurg.evaluation.bootstrap import (
     percentile_interval,
     resample_weights,
 )
+from bopsurg.evaluation.columns import (
+    Columns,
+    as_columns,
+    group_labels,
+    n_rows,
+    take,
+    to_frame,
+)
 from bopsurg.evaluation.summary import (
     ABS_THRESHOLDS,
     AUC_MAX_FRACTION,
@@ -33,13 +40,15 @@ from bopsurg.evaluation.summary import (
 )
 from bopsurg.metrics.registry import METRICS, table_metrics
 
+if TYPE_CHECKING:  # pandas for the rows compare reads (load_table_rows) only
+    import pandas as pd
+
 F64 = NDArray[np.float64]
 
 
-def _units(rows: pd.DataFrame, unit: str) -> NDArray[np.int64]:
+def _units(rows: Columns, unit: str) -> NDArray[np.int64]:
     keys = ["scene_id"] if unit == "scene" else ["scene_id", "im_id"]
-    units: NDArray[np.int64] = rows.groupby(keys, sort=True).ngroup().to_numpy(np.int64)
-    return units
+    return group_labels(*(np.asarray(rows[k]) for k in keys))
 
 
 def weighted_median(values: F64, weights: F64) -> F64:
@@ -72,20 +81,28 @@ def _sample_columns() -> tuple[str, ...]:
     return (*ID_COLUMNS, *METRICS)  # read when called: a metric added to the registry counts
 
 
-def table_rows(gt_rows: pd.DataFrame, min_visib: float) -> pd.DataFrame:
-    """The GT instances of the table (``visib_fract ≥ min_visib``), columns it needs."""
-    sel = gt_rows[gt_rows["visib_fract"] >= min_visib]
-    return sel[[c for c in _sample_columns() if c in sel]].reset_index(drop=True)
+@overload
+def table_rows(gt_rows: Columns, min_visib: float) -> Columns: ...
+@overload
+def table_rows(gt_rows: pd.DataFrame, min_visib: float) -> pd.DataFrame: ...
+def table_rows(gt_rows: Columns | pd.DataFrame, min_visib: float) -> Columns | pd.DataFrame:
+    """The GT instances of the table (``visib_fract ≥ min_visib``), columns it needs (as the
+    rows given: columns or a DataFrame)."""
+    cols = as_columns(gt_rows)
+    keep = cols["visib_fract"] >= min_visib
+    rows = take({c: cols[c] for c in _sample_columns() if c in cols}, keep)
+    return rows if isinstance(gt_rows, dict) else to_frame(rows)
 
 
-def summary_replicates(rows: pd.DataFrame, weights: F64) -> dict[str, F64]:
+def summary_replicates(rows: Columns | pd.DataFrame, weights: F64) -> dict[str, F64]:
     """The table's numbers under each row of instance weights (B, R): ``{metric}_{mean|std|
     median}``, ``recall_{label}``, ``{add|adi}_auc``; (B,) each."""
+    rows = as_columns(rows)
     total = weights.sum(axis=1)
     out: dict[str, F64] = {}
     with np.errstate(invalid="ignore", divide="ignore"):
         for m in (t.name for t in table_metrics()):
-            v = rows[m].to_numpy(np.float64)
+            v = np.asarray(rows[m], dtype=np.float64)
             ok = np.isfinite(v)
             wv, vv = weights[:, ok], v[ok]
             n = wv.sum(axis=1)
@@ -94,28 +111,29 @@ def summary_replicates(rows: pd.DataFrame, weights: F64) -> dict[str, F64]:
             out[f"{m}_std"] = np.sqrt(np.maximum(wv @ (vv * vv) / n - mean * mean, 0.0))
             out[f"{m}_median"] = weighted_median(vv, wv)
         for col, th in ABS_THRESHOLDS:
-            hit = rows[col].to_numpy(np.float64) < th  # NaN (missed) is no hit
+            hit = np.asarray(rows[col], dtype=np.float64) < th  # NaN (missed) is no hit
             out[f"recall_{recall_label(col, th)}"] = weights @ hit / total
         s = np.arange(1, AUC_STEPS + 1) / AUC_STEPS
-        max_th = AUC_MAX_FRACTION * rows["diameter"].to_numpy(np.float64)
+        max_th = AUC_MAX_FRACTION * np.asarray(rows["diameter"], dtype=np.float64)
         for col in (m.name for m in METRICS.values() if m.auc):
             if col in rows:
-                e = rows[col].to_numpy(np.float64)
+                e = np.asarray(rows[col], dtype=np.float64)
                 ratio = np.where(np.isnan(e), np.inf, e) / max_th
                 per_row = (ratio[None, :] < s[:, None]).mean(axis=0)  # each one's accuracy
                 out[f"{col}_auc"] = weights @ per_row / total
     return out
 
 
-def row_weights(rows: pd.DataFrame, replicates: int, seed: int, unit: str) -> F64:
+def row_weights(rows: Columns | pd.DataFrame, replicates: int, seed: int, unit: str) -> F64:
     """(replicates, R) bootstrap weights of the rows, by their image or scene."""
-    if len(rows) == 0:
+    cols = as_columns(rows)
+    if n_rows(cols) == 0:
         return np.zeros((replicates, 0))
-    return resample_weights(_units(rows, unit), replicates, seed)
+    return resample_weights(_units(cols, unit), replicates, seed)
 
 
 def summary_intervals(
-    gt_rows: pd.DataFrame,
+    gt_rows: Columns | pd.DataFrame,
     min_visib: float,
     replicates: int,
     seed: int = 0,
@@ -132,7 +150,7 @@ def summary_intervals(
         seed: Generator seed.
         unit: ``"image"`` or ``"scene"``.
     """
-    rows = table_rows(gt_rows, min_visib)
+    rows = table_rows(as_columns(gt_rows), min_visib)
     reps = summary_replicates(rows, row_weights(rows, replicates, seed, unit))
     out: dict[str, Any] = {"table": {}, "recall": {}}
     for m in (t.name for t in table_metrics()):
@@ -152,10 +170,11 @@ def summary_intervals(
 TABLE_SAMPLES_FILENAME = "bootstrap_table.npz"
 
 
-def save_table_rows(path: Path, rows: pd.DataFrame) -> None:
+def save_table_rows(path: Path, rows: Columns | pd.DataFrame) -> None:
     """Write the table's rows (npz, atomically)."""
+    arrays: dict[str, Any] = as_columns(rows)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, **{c: rows[c].to_numpy() for c in rows.columns})
+        np.savez_compressed(f, **arrays)
 
 
 def load_table_rows(path: Path) -> pd.DataFrame:
@@ -166,7 +185,7 @@ def load_table_rows(path: Path) -> pd.DataFrame:
     """
     try:
         with np.load(path, allow_pickle=False) as z:
-            return pd.DataFrame({c: z[c] for c in z.files})
+            return to_frame({c: z[c] for c in z.files})
     except FileNotFoundError:
         raise InputError(f"{path}: missing (evaluate again with this bopsurg)") from None
     except (OSError, ValueError) as exc:
@@ -174,24 +193,30 @@ def load_table_rows(path: Path) -> pd.DataFrame:
 
 
 def compare_tables(
-    a: pd.DataFrame, b: pd.DataFrame, replicates: int, seed: int = 0, unit: str = "image"
+    a: Columns | pd.DataFrame,
+    b: Columns | pd.DataFrame,
+    replicates: int,
+    seed: int = 0,
+    unit: str = "image",
 ) -> dict[str, Comparison]:
     """Paired bootstrap comparison of the table's numbers of two evaluations of the same GT.
 
     Raises:
         BopsurgError: The evaluations are not on the same GT instances.
     """
-    key = ["scene_id", "im_id", "gt_id"]
-    if len(a) != len(b) or not np.array_equal(a[key].to_numpy(), b[key].to_numpy()):
+    cols_a, cols_b = as_columns(a), as_columns(b)
+    n_a, n_b = n_rows(cols_a), n_rows(cols_b)
+    key = ("scene_id", "im_id", "gt_id")
+    if n_a != n_b or not all(np.array_equal(cols_a[k], cols_b[k]) for k in key):
         raise BopsurgError(
-            f"the evaluations' tables cover different GT instances ({len(a)} vs {len(b)}): "
+            f"the evaluations' tables cover different GT instances ({n_a} vs {n_b}): "
             "compare needs the same dataset split and --min-visib"
         )
-    ones = np.ones((1, len(a)))
-    weights = row_weights(a, replicates, seed, unit)
+    ones = np.ones((1, n_a))
+    weights = row_weights(cols_a, replicates, seed, unit)
     return paired_comparisons(
-        summary_replicates(a, ones),
-        summary_replicates(b, ones),
-        summary_replicates(a, weights),
-        summary_replicates(b, weights),
+        summary_replicates(cols_a, ones),
+        summary_replicates(cols_b, ones),
+        summary_replicates(cols_a, weights),
+        summary_replicates(cols_b, weights),
     )

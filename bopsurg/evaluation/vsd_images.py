@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,7 +22,9 @@ from numpy.typing import NDArray
 from bopsurg.bop.images import image_size, load_depth_window
 from bopsurg.bop.meshes import ObjectModel
 from bopsurg.metrics.vsd import vsd_in_window
-from bopsurg.plugins import DepthRenderer
+
+if TYPE_CHECKING:  # (the worker process loads no entry points)
+    from bopsurg.plugins import DepthRenderer
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

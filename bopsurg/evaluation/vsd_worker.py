@@ -1,18 +1,21 @@
 """A process that computes VSD (:mod:`bopsurg.evaluation.vsd_images`) while the caller does the
 rest of the evaluation: rendering holds the GIL, so a thread would not overlap it.
 
-The caller starts the worker as early as it knows that VSD will run
-(:meth:`VsdWorker.start`): the worker imports numpy and the renderer plugin while the caller
-imports the rest. The caller then submits one :class:`~bopsurg.evaluation.vsd_images.VsdJob`
-and collects the errors when it needs them. Messages are pickled over the worker's own pipes
-(objects this program made, never a user's file). A worker that fails in any way raises
-:class:`VsdWorkerError` on collection, and the caller computes VSD itself: the errors, and
-any error message about the data, are then exactly those of the in-process path.
+The caller starts the worker as early as it knows that VSD may run (:meth:`VsdWorker.start`;
+this module imports no numpy, so ``bopsurg eval`` starts it before loading anything) and
+closes it if VSD does not run after all: the worker imports numpy and the renderer plugin
+while the caller imports the rest. The caller then submits one
+:class:`~bopsurg.evaluation.vsd_images.VsdJob` and collects the errors when it needs them.
+Messages are pickled over the worker's own pipes (objects this program made, never a user's
+file). A worker that fails in any way raises :class:`VsdWorkerError` on collection, and the
+caller computes VSD itself: the errors, and any error message about the data, are then
+exactly those of the in-process path.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib
 import json
 import logging
 import os
@@ -22,30 +25,26 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterable
-from typing import Any
-
-import numpy as np
-from numpy.typing import NDArray
+from typing import TYPE_CHECKING, Any
 
 from bopsurg.errors import BopsurgError
-from bopsurg.evaluation.vsd_images import (
-    VsdImage,
-    VsdJob,
-    WindowRenderer,
-    vsd_errors,
-    window_renderer,
-)
+
+if TYPE_CHECKING:  # the caller starts a worker before it imports numpy (serve imports them)
+    import numpy as np
+    from numpy.typing import NDArray
+
+    from bopsurg.evaluation.vsd_images import VsdImage, VsdJob, WindowRenderer
+
+    F64 = NDArray[np.float64]
 
 log = logging.getLogger(__name__)
-
-F64 = NDArray[np.float64]
 
 #: Seconds to wait for a worker to exit after its input is closed.
 EXIT_TIMEOUT_S = 5.0
 
 _BOOT = (
     "import json, sys; sys.path[:] = json.loads(sys.argv[1]); "
-    "from bopsurg.evaluation.vsd_worker import serve; serve(sys.argv[2])"
+    "from bopsurg.evaluation.vsd_worker import serve; serve(sys.argv[2], sys.argv[3])"
 )
 
 
@@ -65,25 +64,32 @@ class VsdWorker:
         worker.close()
     """
 
-    def __init__(self, proc: subprocess.Popen[bytes]) -> None:
+    def __init__(self, proc: subprocess.Popen[bytes], renderer_name: str = "") -> None:
         self._proc = proc
+        #: The renderer plugin it renders with.
+        self.renderer_name = renderer_name
         self._sender: threading.Thread | None = None
         self._answered = False
 
     @classmethod
-    def start(cls, renderer_name: str) -> VsdWorker | None:
-        """Start a worker that renders with the renderer plugin ``renderer_name``; None when
-        no process can be started (the caller then computes VSD itself)."""
+    def start(cls, renderer_name: str, target: str | None = None) -> VsdWorker | None:
+        """Start a worker that renders with the renderer plugin ``renderer_name`` (importable
+        from ``target``, ``module:attribute``; default: looked up); None when no process can
+        be started (the caller then computes VSD itself)."""
+        if target is None:
+            target = _plugin_target(renderer_name)
         try:
             proc = subprocess.Popen(
-                [sys.executable, "-c", _BOOT, json.dumps(sys.path), renderer_name],
+                [sys.executable, "-c", _BOOT, json.dumps(sys.path), renderer_name, target],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
+                # one BLAS thread unless the user chose: the caller works on the other core
+                env={"OPENBLAS_NUM_THREADS": "1", **os.environ},
             )
         except OSError as err:
             log.debug("VSD worker not started: %s", err)
             return None
-        return cls(proc)
+        return cls(proc, renderer_name)
 
     def submit(self, job: VsdJob, *, progress: bool = False) -> None:
         """Send the job (once) without waiting for the worker to read it (it may still be
@@ -126,6 +132,8 @@ class VsdWorker:
         threading.Thread(target=self._proc.wait, daemon=True).start()
         if status != "ok":
             raise VsdWorkerError(f"the VSD worker failed: {value}")
+        import numpy as np
+
         errors: F64 = np.asarray(value, dtype=np.float64)
         return errors
 
@@ -152,13 +160,48 @@ class VsdWorker:
             self._proc.kill()
 
 
-def serve(renderer_name: str) -> None:
-    """The worker's main: load the renderer, then answer jobs from stdin until it closes.
+def _plugin_target(renderer_name: str) -> str:
+    """``module:attribute`` of the renderer plugin ``renderer_name``, or "" when none is
+    installed under that name: the worker then imports it without reading every installed
+    distribution's entry points again."""
+    from bopsurg.plugins import available_plugins
+
+    ep = available_plugins("renderer").get(renderer_name)
+    return "" if ep is None else f"{ep.module}:{ep.attr}"
+
+
+def _load_renderer(renderer_name: str, target: str) -> Any:
+    """The renderer plugin's object: imported from ``target`` (:func:`_plugin_target`), or
+    looked up by name (for its error message) when there is none."""
+    if not target:
+        from bopsurg.plugins import load_plugin
+
+        return load_plugin("renderer", renderer_name)
+    module, _, attr = target.partition(":")
+    try:
+        obj: Any = importlib.import_module(module)
+    except ImportError as err:
+        from bopsurg.plugins import install_hint
+
+        hint = install_hint(err.name) if err.name else ""
+        raise BopsurgError(
+            f"renderer plugin {renderer_name!r} cannot be imported: {err}{hint}"
+        ) from err
+    for part in attr.split(".") if attr else ():
+        obj = getattr(obj, part)
+    return obj
+
+
+def serve(renderer_name: str, target: str = "") -> None:
+    """The worker's main: load the renderer (``renderer_name``, importable from ``target``:
+    :func:`_plugin_target`), then answer jobs from stdin until it closes.
 
     Replies go to the original stdout; what libraries print on stdout is discarded, so that
     it cannot corrupt a reply, and so is what the plugin prints on stderr while it loads
     (pybullet's banner, which the caller has printed already).
     """
+    from bopsurg.evaluation.vsd_images import window_renderer
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the caller's: it ends this
     replies = os.fdopen(os.dup(1), "wb")
     stderr = os.dup(2)
@@ -169,9 +212,7 @@ def serve(renderer_name: str) -> None:
     render: WindowRenderer | None = None
     failure = ""
     try:
-        from bopsurg.plugins import load_plugin
-
-        render = window_renderer(load_plugin("renderer", renderer_name)())
+        render = window_renderer(_load_renderer(renderer_name, target)())
     except Exception as err:  # reported in the reply to the job
         failure = f"{type(err).__name__}: {err}"
     os.dup2(stderr, 2)  # the progress bar, warnings
@@ -189,6 +230,8 @@ def serve(renderer_name: str) -> None:
 
 def _answer(job: VsdJob, render: WindowRenderer, progress: bool) -> tuple[str, Any]:
     """("ok", errors) or ("error", message) for one job."""
+    from bopsurg.evaluation.vsd_images import vsd_errors
+
     try:
         images: Iterable[VsdImage] = job.images
         if progress:

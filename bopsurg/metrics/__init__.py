@@ -24,15 +24,40 @@ set and order), :func:`estimate_visib_mask` (visible-surface masks, ``bop19``/``
 per-pose oracle in :mod:`bopsurg.metrics.reference` (tests and benchmarks only).
 """
 
-from bopsurg.metrics.point_subsets import hull_vertices
-from bopsurg.metrics.pose_error import add, adi, mspd, mssd, proj, re, te
-from bopsurg.metrics.symmetry import Symmetries, as_symmetries, symmetry_transforms
-from bopsurg.metrics.visibility_mask import (
-    estimate_visib_mask,
-    estimate_visib_mask_est,
-    estimate_visib_mask_gt,
-)
-from bopsurg.metrics.vsd import vsd
+from typing import TYPE_CHECKING
+
+from bopsurg._lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from bopsurg.metrics.point_subsets import hull_vertices
+    from bopsurg.metrics.pose_error import add, adi, mspd, mssd, proj, re, te
+    from bopsurg.metrics.symmetry import Symmetries, as_symmetries, symmetry_transforms
+    from bopsurg.metrics.visibility_mask import (
+        estimate_visib_mask,
+        estimate_visib_mask_est,
+        estimate_visib_mask_gt,
+    )
+    from bopsurg.metrics.vsd import vsd
+
+#: The module of each public name, imported on first access (:mod:`bopsurg._lazy`): the
+#: registry's names and help lines (``bopsurg eval``'s parser) load no numpy.
+_HOME: dict[str, str] = {
+    "Symmetries": ".symmetry",
+    "add": ".pose_error",
+    "adi": ".pose_error",
+    "as_symmetries": ".symmetry",
+    "estimate_visib_mask": ".visibility_mask",
+    "estimate_visib_mask_est": ".visibility_mask",
+    "estimate_visib_mask_gt": ".visibility_mask",
+    "hull_vertices": ".point_subsets",
+    "mspd": ".pose_error",
+    "mssd": ".pose_error",
+    "proj": ".pose_error",
+    "re": ".pose_error",
+    "symmetry_transforms": ".symmetry",
+    "te": ".pose_error",
+    "vsd": ".vsd",
+}
 
 __all__ = [
     "Symmetries",
@@ -51,3 +76,5 @@ __all__ = [
     "te",
     "vsd",
 ]
+
+lazy_exports(__name__, _HOME)

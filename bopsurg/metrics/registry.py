@@ -18,14 +18,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
+from typing import TYPE_CHECKING
 
-import numpy as np
-from numpy.typing import NDArray
+if TYPE_CHECKING:  # the metrics' names and help lines (eval's parser) load no numpy
+    import numpy as np
+    from numpy.typing import NDArray
 
-from bopsurg.metrics.pose_error import add, adi, mspd, mssd, re, te
-from bopsurg.metrics.symmetry import Symmetries
+    from bopsurg.metrics.symmetry import Symmetries
 
-F64 = NDArray[np.float64]
+    F64 = NDArray[np.float64]
 
 
 class Need(Enum):
@@ -92,31 +93,43 @@ class Metric:
 
 
 def _re(b: PairBatch) -> F64:
+    from bopsurg.metrics.pose_error import re
+
     return re(b.R_est, b.R_gt)
 
 
 def _te(b: PairBatch) -> F64:
+    from bopsurg.metrics.pose_error import te
+
     return te(b.t_est, b.t_gt)
 
 
 def _mssd(b: PairBatch) -> F64:
     assert b.pts is not None
+    from bopsurg.metrics.pose_error import mssd
+
     return mssd(b.R_est, b.t_est, b.R_gt, b.t_gt, b.pts, b.syms)
 
 
 def _mspd(b: PairBatch) -> F64:
     assert b.pts is not None
     assert b.K is not None
+    from bopsurg.metrics.pose_error import mspd
+
     return mspd(b.R_est, b.t_est, b.R_gt, b.t_gt, b.K, b.pts, b.syms)
 
 
 def _add(b: PairBatch) -> F64:
     assert b.pts is not None
+    from bopsurg.metrics.pose_error import add
+
     return add(b.R_est, b.t_est, b.R_gt, b.t_gt, b.pts)
 
 
 def _adi(b: PairBatch) -> F64:
     assert b.pts is not None
+    from bopsurg.metrics.pose_error import adi
+
     return adi(b.R_est, b.t_est, b.R_gt, b.t_gt, b.pts)
 
 

@@ -4,6 +4,7 @@ explicit resampling, seeds reproduce, and the paired comparison."""
 from __future__ import annotations
 
 import json
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import pytest
 from bopsurg.bop.results import PoseEstimates, save_results
 from bopsurg.cli.main import main
 from bopsurg.errors import BopsurgError, InputError
-from bopsurg.evaluation import bop24
+from bopsurg.evaluation import bootstrap, bop24
 from bopsurg.evaluation.bootstrap import (
     DetectionSamples,
     bop19_intervals,
@@ -25,6 +26,7 @@ from bopsurg.evaluation.bootstrap import (
     resampling_units,
     save_bop19_counts,
     weighted_ap,
+    weighted_ap_runs,
 )
 from bopsurg.evaluation.bop19 import RecallCurve
 from bopsurg.evaluation.runner import evaluate, evaluate_distributed
@@ -74,6 +76,26 @@ def test_weighted_ap_equals_ap_of_the_repeated_ranking(seed):
             continue
         expected = bop24.interpolated_ap(c / total[row], c / np.arange(1, c.size + 1))
         assert got[row] == pytest.approx(expected, abs=1e-12), row
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_the_rankings_at_once_equal_each_ranking_alone_bit_for_bit(seed):
+    # Rankings of different lengths (padding), without TPs, TPs of weight 0 (images not
+    # drawn), replicates without targets; one batch and several (a small block).
+    rng = np.random.default_rng(seed)
+    n_img, b = int(rng.integers(1, 30)), int(rng.integers(1, 9))
+    w = rng.multinomial(n_img, np.full(n_img, 1 / n_img), size=b).astype(np.float64)
+    runs = []
+    for _ in range(int(rng.integers(1, 7))):
+        n = int(rng.integers(0, 40))
+        runs.append((rng.integers(0, n_img, n), rng.random(n) < rng.random()))
+    total = rng.integers(0, 12, (b, len(runs))).astype(np.float64)
+    expected = np.stack(
+        [weighted_ap(w[:, img], tp, total[:, r]) for r, (img, tp) in enumerate(runs)], axis=1
+    )
+    np.testing.assert_array_equal(weighted_ap_runs(w, runs, total), expected)
+    with mock.patch.object(bootstrap, "_RUNS_BLOCK", 50):
+        np.testing.assert_array_equal(weighted_ap_runs(w, runs, total), expected)
 
 
 def test_weights_equal_explicit_resampling(case):

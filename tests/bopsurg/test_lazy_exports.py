@@ -1,0 +1,42 @@
+"""Packages that import their modules on first access (bopsurg._lazy): every exported name
+resolves to its module's object, and importing the package (or eval's parser, or the VSD
+worker's module) loads no numpy."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+
+import pytest
+
+
+@pytest.mark.parametrize("package", ["bopsurg.bop", "bopsurg.metrics"])
+def test_every_exported_name_is_its_modules_object(package):
+    pkg = importlib.import_module(package)
+    for name in pkg.__all__:
+        home = pkg._HOME[name]
+        assert getattr(pkg, name) is getattr(importlib.import_module(home, package), name)
+        assert name in dir(pkg)
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        pkg.nope  # noqa: B018
+
+
+def test_a_name_shared_with_its_module_stays_the_export():
+    import bopsurg.metrics
+    import bopsurg.metrics.vsd  # binds the submodule on the package, as an import does
+    from bopsurg.metrics import vsd
+
+    assert callable(vsd)
+    assert vsd is sys.modules["bopsurg.metrics.vsd"].vsd
+    assert bopsurg.metrics.vsd is vsd
+
+
+def test_the_light_imports_load_no_numpy():
+    code = (
+        "import sys; import bopsurg.bop, bopsurg.metrics, bopsurg.metrics.registry, "
+        "bopsurg.cli.eval_cmd, bopsurg.evaluation.vsd_worker; "
+        "print(sorted(m for m in ('numpy', 'pandas', 'cv2') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
