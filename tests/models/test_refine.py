@@ -184,16 +184,6 @@ def test_the_reused_buffer_made_in_inference_mode_is_written_outside_it(monkeypa
     torch.testing.assert_close(outside[:, 0], inside[:, 1])
 
 
-def test_the_evidence_gradients_are_numpys():
-    from bopsurg.models.refine.fit import _gradient_xy
-
-    f = np.random.default_rng(9).normal(size=(7, 7))
-    gy, gx = np.gradient(f, 0.37)
-    g = _gradient_xy(f, 0.37)
-    np.testing.assert_array_equal(g[0], gx)
-    np.testing.assert_array_equal(g[1], gy)
-
-
 def test_stacked_maps_in_the_reused_buffer_equal_fresh_ones_with_zero_padding():
     """The fit's maps go into a buffer kept between fits: a stack after one of other grids
     (which left other values there) holds each grid and zeros in a smaller grid's padding."""
