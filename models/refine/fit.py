@@ -434,22 +434,26 @@ class _Problem:
         """The distance transform at the samples (3, B, M), the signed outline distance on the
         tube's two sides (3, B, 2M) (values and x, y gradients), the sides' normals (B, M, 2)
         and which side samples count (B, 2M)."""
-        fwd = self._bilinear(0, uv)  # (3, B, M): distance, d/dx, d/dy
         # the tube's two sides: ±rho along the projected centre line's normal
         tangent = _gradient(uv)  # (B, M, 2), px per sample
         t_len = torch.linalg.vector_norm(tangent, dim=-1, keepdim=True)
         normal = torch.stack([-tangent[..., 1], tangent[..., 0]], -1) / t_len.clamp(min=1e-9)
         off = rho[..., None] * normal
-        side = self._bilinear(1, torch.cat([uv + off, uv - off], 1))  # (3, B, 2M)
+        m = uv.shape[1]
+        # one sampling: the distance at the samples, the outline distance on both sides
+        plane = torch.zeros(3 * m, dtype=torch.long, device=uv.device)
+        plane[m:] = 1
+        both = self._bilinear(plane, torch.cat([uv, uv + off, uv - off], 1))
+        fwd, side = both[..., :m], both[..., m:]  # (3, B, M): value, d/dx, d/dy; (3, B, 2M)
         # a side is defined where the centre line runs across the view (not where it turns
         # back towards the camera) and the wire is wider than a pixel
         use = (t_len[..., 0] > 0.25) & (rho > 0.5) & self.s.tube
         return fwd, side, normal, torch.cat([use, use], 1)
 
-    def _bilinear(self, plane: int, uv: Tensor) -> Tensor:
-        """Map ``plane`` (0: distance, 1: signed outline distance) of each row's ROI and its x,
-        y gradient, bilinearly sampled at image px ``uv`` (B, Q, 2) (clamped to the grid's
-        border): (3, B, Q). The gradient is ``numpy.gradient``'s (central differences,
+    def _bilinear(self, plane: Tensor, uv: Tensor) -> Tensor:
+        """Maps ``plane`` (Q,) (0: distance, 1: signed outline distance) of each row's ROI and
+        their x, y gradient, bilinearly sampled at image px ``uv`` (B, Q, 2) (clamped to the
+        grid's border): (3, B, Q). The gradient is ``numpy.gradient``'s (central differences,
         one-sided at the border) at the four pixels read, from their 4 × 4 neighbourhood."""
         rows, maps = self.rows, self.ev.maps
         side = maps.shape[-1]
@@ -460,25 +464,24 @@ class _Problem:
         x0 = torch.minimum(torch.floor(x).long(), rows.size - 2)
         y0 = torch.minimum(torch.floor(y).long(), rows.size - 2)
         fx, fy = x - x0, y - y0
-        off = torch.arange(-1, 3, device=uv.device)  # the four pixels read and one each side
-        cols = torch.minimum((x0[..., None] + off).clamp(min=0), last[..., None])  # (B, Q, 4)
-        lines = torch.minimum((y0[..., None] + off).clamp(min=0), last[..., None])
-        at = (rows.roi[:, None, None] * side + lines)[..., :, None] * side + cols[..., None, :]
-        f = maps[plane].reshape(-1).index_select(0, at.reshape(-1)).reshape(at.shape)
-        step = rows.step[..., None]  # (B, 1, 1, 1)
-        # (B, Q, 2, 2) at the pixels read (rows y0, y0 + 1; columns x0, x0 + 1): the value,
-        # and the differences over the neighbours' distance (2 steps inside, 1 at the border)
-        dx = ((cols[..., 2:] - cols[..., :2]).to(f.dtype)[..., None, :]) * step
-        dy = ((lines[..., 2:] - lines[..., :2]).to(f.dtype)[..., :, None]) * step
+        # columns x0 - 1 .. x0 + 2 and rows y0 - 1 .. y0 + 2 (the four pixels read and one each
+        # side), clamped to the grid, and the maps there, laid out (4, 4, B, Q): a row and
+        # column of them is one contiguous (B, Q) block
+        off = torch.arange(-1, 3, device=uv.device)[:, None, None]
+        cols = torch.minimum((x0 + off).clamp(min=0), last)  # (4, B, Q)
+        lines = torch.minimum((y0 + off).clamp(min=0), last)
+        grid = (plane * maps.shape[1] + rows.roi[:, None]) * side + lines
+        at = grid[:, None] * side + cols[None]
+        f = maps.reshape(-1).index_select(0, at.reshape(-1)).reshape(at.shape)
+        # the value, and the differences over the neighbours' distance (2 steps inside, 1 at
+        # the border), at the pixels read (rows y0, y0 + 1; columns x0, x0 + 1)
+        dx = (cols[2:] - cols[:2]).to(f.dtype) * rows.step[..., 0]  # (2, B, Q)
+        dy = (lines[2:] - lines[:2]).to(f.dtype)[:, None] * rows.step[..., 0]
         g = torch.stack(
-            [
-                f[..., 1:3, 1:3],
-                (f[..., 1:3, 2:] - f[..., 1:3, :2]) / dx,
-                (f[..., 2:, 1:3] - f[..., :2, 1:3]) / dy,
-            ]
-        )  # (3, B, Q, 2, 2)
-        top_row = g[..., 0, 0] * (1 - fx) + g[..., 0, 1] * fx
-        return top_row * (1 - fy) + (g[..., 1, 0] * (1 - fx) + g[..., 1, 1] * fx) * fy
+            [f[1:3, 1:3], (f[1:3, 2:] - f[1:3, :2]) / dx, (f[2:, 1:3] - f[:2, 1:3]) / dy], 2
+        )
+        top_row = g[0, 0] * (1 - fx) + g[0, 1] * fx  # (3, B, Q)
+        return top_row * (1 - fy) + (g[1, 0] * (1 - fx) + g[1, 1] * fx) * fy
 
     def evaluate(self, R: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Robust cost (B,), the normal equations of its IRLS-weighted residuals (JᵀWJ

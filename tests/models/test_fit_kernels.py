@@ -72,7 +72,7 @@ def test_the_maps_gradients_sampled_in_the_fit_are_numpys_maps_sampled(seed):
         grid[:20] = rng.integers(0, s, size=(20, 2))  # on pixel centres and borders
         uv[i] = e.origin + e.step * grid
     for plane, name in enumerate(("dist", "sdf")):
-        got = prob._bilinear(plane, torch.as_tensor(uv)).numpy()  # (3, 2, Q)
+        got = prob._bilinear(torch.full((q,), plane), torch.as_tensor(uv)).numpy()  # (3, 2, Q)
         for i, (e, s) in enumerate(zip(evidence, sides, strict=True)):
             want = _old_bilinear(
                 _with_gradients(getattr(e, name), e.step), (uv[i] - e.origin) / e.step, s
