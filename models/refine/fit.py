@@ -562,7 +562,8 @@ def _reverse_jacobian(near: _Nearest, Jp: Tensor, drho: Tensor) -> Tensor:  # no
     Jc = (1 - tk) * lo + tk * hi  # (B, N, 18): c's pixel (u, v) and radius derivatives
     seg_n = torch.stack([-sv[..., 1], sv[..., 0]], -1)
     seg_n = seg_n / torch.linalg.vector_norm(seg_n, dim=-1, keepdim=True).clamp(min=1e-12)
-    seg_n = torch.where((seg_n * dv).sum(-1, keepdim=True) < 0, -seg_n, seg_n)
+    away = (seg_n[..., :1] * dv[..., :1] + seg_n[..., 1:] * dv[..., 1:]) < 0  # a sum of two
+    seg_n = torch.where(away, -seg_n, seg_n)
     interior = (tk > 0) & (tk < 1)
     unit = dv / near.d_line[..., None].clamp(min=1e-9)
     u_hat = torch.where(interior | (near.d_line[..., None] < 1e-9), seg_n, unit)
