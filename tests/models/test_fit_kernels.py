@@ -181,3 +181,15 @@ def test_cpu_workers_give_the_threads_and_hold_one_per_op():
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_forked_child_starts_its_own_pool():
+    """A child forked after the pool started has none of its threads: it must not wait on
+    them."""
+    mp = pytest.importorskip("multiprocessing")
+    if "fork" not in mp.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    assert workers.run(lambda g: g, [1, 2]) == [1, 2]  # the parent's pool exists
+    ctx = mp.get_context("fork")
+    with ctx.Pool(1) as pool:
+        assert pool.apply_async(workers.run, (abs, [-1, -2])).get(timeout=60) == [1, 2]
