@@ -178,7 +178,8 @@ def fit_depths(
             (:func:`.wire3d.depth_points`).
         arc: The needle's centre line.
         settings: Knobs.
-        device: Where the fit runs (float64).
+        device: Where the fit runs (float64); on a CPU with n torch threads, as n groups
+            of needles side by side (:mod:`.workers`).
 
     Returns:
         Per needle the fitted pose, or the input one (``used`` False) where the guard

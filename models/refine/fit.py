@@ -616,7 +616,8 @@ def refine_poses(
             the first start (the network's pose), so that a start far from it is not held
             back (for when the network's pose disagrees with the points).
         depth: the depth term's settings (defaults when None).
-        device: where the fit runs (float64).
+        device: where the fit runs (float64); on a CPU with n torch threads, as n groups
+            of ROIs side by side (:mod:`.workers`).
 
     Returns:
         Per ROI the fitted pose where it beats the start's cost (``improved``), else the
