@@ -7,7 +7,9 @@ other jobs) and printed in ms per image: the detector, the pose head (its first 
 re-crops' passes together), the segmenter (first masks and re-crops), the evidence's
 preparation (distance transforms), the fit to the depth points alone, the RGB(-D) fit, and
 the end check. The stages nest: ``refine stage`` holds the segmenter, ``refiner.fit`` and the
-re-crops' pose-head passes; ``refiner.fit`` holds the evidence and both fits.
+re-crops' pose-head passes; ``refiner.fit`` holds the evidence and both fits. Keep the
+default ``--threads 1``: with more, the refinement runs its parts on worker threads
+(``models/refine/workers.py``), whose time the calling thread's clock does not see.
 
     python bench/bench_predict_stages.py /work/exp/s38/testsplit --images 48 --batch-size 8
 
@@ -87,7 +89,9 @@ def main() -> None:
     ap.add_argument("--split", default="test")
     ap.add_argument("--images", type=int, default=48, help="images timed per mode")
     ap.add_argument("--batch-size", type=int, default=8)
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    ap.add_argument(
+        "--threads", type=int, default=1, help="torch threads (default 1; see the docstring)"
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     ds = BopDataset(args.dataset, args.split)

@@ -42,13 +42,15 @@ from numpy.typing import ArrayLike, NDArray
 from torch import Tensor
 
 from bopsurg.models.predict_config import DepthSettings, FitSettings
+from bopsurg.models.refine import workers
 from bopsurg.models.refine.arc import ArcModel, exp_so3, log_so3, mirror_pose, same_ends
-from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
+from bopsurg.models.refine.lm import levenberg_marquardt, normal_equations
 from bopsurg.models.refine.wire3d import (
     camera_normal_equations,
     stack_points,
     wire_residuals_model,
 )
+from bopsurg.models.refine.workers import cpu_workers
 
 F64 = NDArray[np.float64]
 
@@ -63,22 +65,22 @@ class Evidence:
     Attributes:
         points: (N, 2) image px of the foreground grid pixels used by the reverse term.
         dist: (S, S) distance (image px) of every grid pixel to the nearest foreground pixel.
-        grad: (2, S, S) its gradient along image x and y (per image px).
         origin: (2,) image px of grid pixel (0, 0).
         step: image px per grid pixel.
         sdf: (S, S) signed distance (image px) to the foreground's outline, negative inside;
             bilinear interpolation crosses 0 half-way between a foreground pixel and its
             background neighbour, where the outline lies.
-        sdf_grad: (2, S, S) its gradient along image x and y.
+
+    The fit samples both maps and their gradients (``numpy.gradient``'s: central differences,
+    one-sided at the border), the latter taken at the pixels it reads
+    (:meth:`_Problem._bilinear`).
     """
 
     points: F64
     dist: F64
-    grad: F64
     origin: F64
     step: float
     sdf: F64
-    sdf_grad: F64
 
     @classmethod
     def from_mask(
@@ -108,23 +110,17 @@ class Evidence:
         if mask.any():
             bg = (~mask).astype(np.uint8)
             dist = cv2.distanceTransform(bg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(float)
+            dist *= step
+            sdf = dist.copy()
+            box = _inside_box(mask)  # the exact transform of the mask and its border alone
             inside = cv2.distanceTransform(
-                mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE
-            ).astype(float)
+                mask[box].astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE
+            )
+            sdf[box] -= step * inside.astype(float)
         else:
-            dist = np.full(mask.shape, float(max(mask.shape)))
-            inside = np.zeros(mask.shape)
-        dist *= step
-        sdf = dist - step * inside
-        return cls(
-            points,
-            dist,
-            _gradient_xy(dist, step),
-            origin,
-            float(step),
-            sdf,
-            _gradient_xy(sdf, step),
-        )
+            dist = np.full(mask.shape, float(max(mask.shape))) * step
+            sdf = dist - 0.0
+        return cls(points, dist, origin, float(step), sdf)
 
     @property
     def size(self) -> int:
@@ -146,19 +142,17 @@ def _host_buffer(shape: tuple[int, ...]) -> Tensor:
     return buf[:need].view(shape)
 
 
-def _gradient_xy(f: F64, step: float) -> F64:
-    """d/dx and d/dy (2, S, S) of a grid ``f`` (S, S) whose pixels are ``step`` apart:
-    ``numpy.gradient``'s (central differences, one-sided at the borders) written into one
-    array instead of stacked from two."""
-    out = np.empty((2, *f.shape))
-    gx, gy = out
-    np.subtract(f[:, 2:], f[:, :-2], out=gx[:, 1:-1])
-    gx[:, 1:-1] /= 2.0 * step
-    gx[:, 0], gx[:, -1] = (f[:, 1] - f[:, 0]) / step, (f[:, -1] - f[:, -2]) / step
-    np.subtract(f[2:], f[:-2], out=gy[1:-1])
-    gy[1:-1] /= 2.0 * step
-    gy[0], gy[-1] = (f[1] - f[0]) / step, (f[-1] - f[-2]) / step
-    return out
+def _inside_box(mask: NDArray[np.bool_]) -> tuple[slice, slice]:
+    """The foreground's bounding box grown by one pixel (within the grid): every foreground
+    pixel's nearest background pixel lies in it (the box's ring is background, and a pixel
+    outside it is farther than the ring's pixel nearest it), so an exact distance transform
+    of the foreground on it equals the transform on the whole grid."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    h, w = mask.shape
+    return (
+        slice(max(rows[0] - 1, 0), min(rows[-1] + 2, h)),
+        slice(max(cols[0] - 1, 0), min(cols[-1] + 2, w)),
+    )
 
 
 class EvidenceBatch(NamedTuple):
@@ -168,8 +162,8 @@ class EvidenceBatch(NamedTuple):
         points: (n, N, 2) image px of each ROI's reverse-term pixels, padded to the most.
         valid: (n, N) bool: which of them are real.
         real: (n,) how many are real.
-        maps: (6, n, S, S) distance, its x, y gradient, signed outline distance, its x, y
-            gradient, padded to the largest grid side S.
+        maps: (2, n, S, S) distance and signed outline distance, padded to the largest grid
+            side S.
         size: (n,) each grid's own side.
         origin: (n, 2) image px of grid pixel (0, 0).
         step: (n,) image px per grid pixel.
@@ -195,13 +189,13 @@ class EvidenceBatch(NamedTuple):
         allocation, whose first touch costs more than the copy into them."""
         points, valid = stack_points([e.points for e in evidence], device)
         side = max([1, *(e.dist.shape[-1] for e in evidence)])
-        shape = (6, len(evidence), side, side)
+        shape = (2, len(evidence), side, side)
         on_host = reuse and device.type == "cpu"
         maps = _host_buffer(shape) if on_host else torch.empty(shape, dtype=torch.float64)
         for i, e in enumerate(evidence):  # preparation: a copy per ROI, once per fit
             s = e.dist.shape[-1]
             maps[:, i, s:], maps[:, i, :s, s:] = 0.0, 0.0  # a smaller grid's padding
-            for c, plane in enumerate((e.dist, *e.grad, e.sdf, *e.sdf_grad)):
+            for c, plane in enumerate((e.dist, e.sdf)):
                 maps[c, i, :s, :s] = torch.from_numpy(np.ascontiguousarray(plane, np.float64))
 
         def f64(a: ArrayLike) -> Tensor:
@@ -272,11 +266,12 @@ def _on_segments(p: Tensor, a: Tensor, ab: Tensor) -> tuple[Tensor, Tensor]:
     return tau, ap - tau[..., None] * ab
 
 
-def _take(x: Tensor, index: Tensor) -> Tensor:
-    """``x`` (B, M, ...) at ``index`` (B, N) along its second axis: (B, N, ...)."""
-    flat = index.reshape(index.shape[0], -1, *([1] * (x.ndim - 2)))
-    out = torch.gather(x, 1, flat.expand(-1, -1, *x.shape[2:]))
-    return out.reshape(*index.shape, *x.shape[2:])
+def _argmin_last(x: Tensor) -> Tensor:
+    """``x.argmin(-1)`` (the first of equal minima; int64), by numpy's vectorised argmin on
+    the CPU: torch's reduction along a short last axis is several times slower."""
+    if x.device.type != "cpu":
+        return x.argmin(-1)
+    return torch.from_numpy(np.ascontiguousarray(x.numpy().argmin(-1), np.int64))
 
 
 class _Rows(NamedTuple):
@@ -406,7 +401,7 @@ class _Problem:
         # either way)
         uv32 = (uv - self.rows.origin).float()
         half = (0.5 * (uv32 * uv32).sum(-1))[:, None, :]
-        k0 = torch.baddbmm(half, self.points32, uv32.transpose(1, 2), alpha=-1.0).argmin(-1)
+        k0 = _argmin_last(torch.baddbmm(half, self.points32, uv32.transpose(1, 2), alpha=-1.0))
         seg = torch.stack([k0 - 1, k0], -1).clamp(0, m - 2)  # (B, N, 2) candidate segments
         # x and y apart: sums over an axis of two cost more than the arithmetic
         ux, uy = uv[..., 0], uv[..., 1]
@@ -439,36 +434,54 @@ class _Problem:
         """The distance transform at the samples (3, B, M), the signed outline distance on the
         tube's two sides (3, B, 2M) (values and x, y gradients), the sides' normals (B, M, 2)
         and which side samples count (B, 2M)."""
-        fwd = self._bilinear(0, uv)  # (3, B, M): distance, d/dx, d/dy
         # the tube's two sides: ±rho along the projected centre line's normal
         tangent = _gradient(uv)  # (B, M, 2), px per sample
         t_len = torch.linalg.vector_norm(tangent, dim=-1, keepdim=True)
         normal = torch.stack([-tangent[..., 1], tangent[..., 0]], -1) / t_len.clamp(min=1e-9)
         off = rho[..., None] * normal
-        side = self._bilinear(3, torch.cat([uv + off, uv - off], 1))  # (3, B, 2M)
+        m = uv.shape[1]
+        # one sampling: the distance at the samples, the outline distance on both sides
+        plane = torch.zeros(3 * m, dtype=torch.long, device=uv.device)
+        plane[m:] = 1
+        both = self._bilinear(plane, torch.cat([uv, uv + off, uv - off], 1))
+        fwd, side = both[..., :m], both[..., m:]  # (3, B, M): value, d/dx, d/dy; (3, B, 2M)
         # a side is defined where the centre line runs across the view (not where it turns
         # back towards the camera) and the wire is wider than a pixel
         use = (t_len[..., 0] > 0.25) & (rho > 0.5) & self.s.tube
         return fwd, side, normal, torch.cat([use, use], 1)
 
-    def _bilinear(self, first: int, uv: Tensor) -> Tensor:
-        """Maps ``first``..``first + 2`` of each row's ROI bilinearly sampled at image px
-        ``uv`` (B, Q, 2) (clamped to the grid's border): (3, B, Q)."""
+    def _bilinear(self, plane: Tensor, uv: Tensor) -> Tensor:
+        """Maps ``plane`` (Q,) (0: distance, 1: signed outline distance) of each row's ROI and
+        their x, y gradient, bilinearly sampled at image px ``uv`` (B, Q, 2) (clamped to the
+        grid's border): (3, B, Q). The gradient is ``numpy.gradient``'s (central differences,
+        one-sided at the border) at the four pixels read, from their 4 × 4 neighbourhood."""
         rows, maps = self.rows, self.ev.maps
         side = maps.shape[-1]
         xy = (uv - rows.origin) / rows.step
-        top = (rows.size - 1).to(xy.dtype)
-        x = torch.minimum(xy[..., 0].clamp(min=0.0), top)
-        y = torch.minimum(xy[..., 1].clamp(min=0.0), top)
+        last = rows.size - 1
+        x = torch.minimum(xy[..., 0].clamp(min=0.0), last.to(xy.dtype))
+        y = torch.minimum(xy[..., 1].clamp(min=0.0), last.to(xy.dtype))
         x0 = torch.minimum(torch.floor(x).long(), rows.size - 2)
         y0 = torch.minimum(torch.floor(y).long(), rows.size - 2)
         fx, fy = x - x0, y - y0
-        base = (rows.roi[:, None] * side + y0) * side + x0  # (B, Q) flat index
-        corners = torch.stack([base, base + 1, base + side, base + side + 1], -1)
-        g = maps[first : first + 3].reshape(3, -1)[:, corners.reshape(-1)]
-        g = g.reshape(3, *corners.shape)
-        top_row = g[..., 0] * (1 - fx) + g[..., 1] * fx
-        return top_row * (1 - fy) + (g[..., 2] * (1 - fx) + g[..., 3] * fx) * fy
+        # columns x0 - 1 .. x0 + 2 and rows y0 - 1 .. y0 + 2 (the four pixels read and one each
+        # side), clamped to the grid, and the maps there, laid out (4, 4, B, Q): a row and
+        # column of them is one contiguous (B, Q) block
+        off = torch.arange(-1, 3, device=uv.device)[:, None, None]
+        cols = torch.minimum((x0 + off).clamp(min=0), last)  # (4, B, Q)
+        lines = torch.minimum((y0 + off).clamp(min=0), last)
+        grid = (plane * maps.shape[1] + rows.roi[:, None]) * side + lines
+        at = grid[:, None] * side + cols[None]
+        f = maps.reshape(-1).index_select(0, at.reshape(-1)).reshape(at.shape)
+        # the value, and the differences over the neighbours' distance (2 steps inside, 1 at
+        # the border), at the pixels read (rows y0, y0 + 1; columns x0, x0 + 1)
+        dx = (cols[2:] - cols[:2]).to(f.dtype) * rows.step[..., 0]  # (2, B, Q)
+        dy = (lines[2:] - lines[:2]).to(f.dtype)[:, None] * rows.step[..., 0]
+        g = torch.stack(
+            [f[1:3, 1:3], (f[1:3, 2:] - f[1:3, :2]) / dx, (f[2:, 1:3] - f[:2, 1:3]) / dy], 2
+        )
+        top_row = g[0, 0] * (1 - fx) + g[0, 1] * fx  # (3, B, Q)
+        return top_row * (1 - fy) + (g[1, 0] * (1 - fx) + g[1, 1] * fx) * fy
 
     def evaluate(self, R: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Robust cost (B,), the normal equations of its IRLS-weighted residuals (JᵀWJ
@@ -540,15 +553,21 @@ def _reverse_jacobian(near: _Nearest, Jp: Tensor, drho: Tensor) -> Tensor:  # no
     (moving with the pose) and û the segment normal towards e, or the direction from c where c
     is an end of the arc."""
     k, tk, dv, sv = near.k, near.tk, near.dv, near.sv
-    Jc = (1 - tk[..., None]) * _take(Jp, k) + tk[..., None] * _take(Jp, k + 1)  # (B, N, 2, 6)
+    b, m = drho.shape[:2]
+    # a row per sample: its pixel's derivatives and its radius's (B·M, 18), so that a point's
+    # two samples are two row lookups (a gather of single elements costs several times more)
+    table = torch.cat([Jp.reshape(b, m, 12), drho], -1).reshape(b * m, 18)
+    at = (k + torch.arange(b, device=k.device)[:, None] * m).reshape(-1)
+    lo, hi = (table.index_select(0, i).reshape(*k.shape, 18) for i in (at, at + 1))
+    Jc = (1 - tk) * lo + tk * hi  # (B, N, 18): c's pixel (u, v) and radius derivatives
     seg_n = torch.stack([-sv[..., 1], sv[..., 0]], -1)
     seg_n = seg_n / torch.linalg.vector_norm(seg_n, dim=-1, keepdim=True).clamp(min=1e-12)
-    seg_n = torch.where((seg_n * dv).sum(-1, keepdim=True) < 0, -seg_n, seg_n)
+    away = (seg_n[..., :1] * dv[..., :1] + seg_n[..., 1:] * dv[..., 1:]) < 0  # a sum of two
+    seg_n = torch.where(away, -seg_n, seg_n)
     interior = (tk > 0) & (tk < 1)
     unit = dv / near.d_line[..., None].clamp(min=1e-9)
     u_hat = torch.where(interior | (near.d_line[..., None] < 1e-9), seg_n, unit)
-    drho_c = (1 - tk) * _take(drho, k) + tk * _take(drho, k + 1)  # (B, N, 6)
-    J_rev = -torch.einsum("bnk,bnkp->bnp", u_hat, Jc) - drho_c
+    J_rev = -(u_hat[..., :1] * Jc[..., :6] + u_hat[..., 1:] * Jc[..., 6:12]) - Jc[..., 12:]
     return J_rev * (near.d_rev > 0)[..., None]
 
 
@@ -597,7 +616,8 @@ def refine_poses(
             the first start (the network's pose), so that a start far from it is not held
             back (for when the network's pose disagrees with the points).
         depth: the depth term's settings (defaults when None).
-        device: where the fit runs (float64).
+        device: where the fit runs (float64); on a CPU with n torch threads, as n groups
+            of ROIs side by side (:mod:`.workers`).
 
     Returns:
         Per ROI the fitted pose where it beats the start's cost (``improved``), else the
@@ -623,23 +643,25 @@ def refine_poses(
         return out
     idx = np.flatnonzero(active)
     extra = starts or Starts.none()
-    keep = active[extra.roi]
-    remap = np.cumsum(active) - 1
-    dev = torch.device(device)
-    with fit_threads(dev):
-        res = _fit_batch(
-            dev,
-            arc,
-            s,
-            depth or DepthSettings(),
-            [evidence[int(i)] for i in idx],
-            (R_init[idx], t_init[idx], K[idx]),
-            [pts[i] for i in idx],
-            Starts(extra.R[keep], extra.t[keep], remap[extra.roi[keep]]),
-            own_priors & has_points[idx],
-        )
-    for field, value in zip(out, res, strict=True):
-        field[idx] = value
+    dev, dep = torch.device(device), depth or DepthSettings()
+
+    def fit_group(rows: np.ndarray) -> tuple[F64, F64, F64, F64, NDArray[np.bool_]]:
+        keep = np.isin(extra.roi, rows)
+        remap = np.zeros(n, np.int64)
+        remap[rows] = np.arange(len(rows))
+        sub = Starts(extra.R[keep], extra.t[keep], remap[extra.roi[keep]])
+        ev, p = [evidence[int(i)] for i in rows], [pts[i] for i in rows]
+        poses = (R_init[rows], t_init[rows], K[rows])
+        return _fit_batch(dev, arc, s, dep, ev, poses, p, sub, own_priors & has_points[rows])
+
+    with cpu_workers(dev) as parts:
+        # a ROI's rows: the network's pose, its mirror, the extra starts
+        mirrored = s.mirror_start | has_points[idx]
+        rows_per_roi = 1 + mirrored + np.bincount(extra.roi, minlength=n)[idx]
+        groups = workers.split(idx, parts, rows_per_roi)
+        for rows, res in zip(groups, workers.run(fit_group, groups), strict=True):
+            for field, value in zip(out, res, strict=True):
+                field[rows] = value
     return out
 
 

@@ -25,6 +25,7 @@ from bopsurg.geometry import transform_pts
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
 from bopsurg.models.pose.roi import crop
 from bopsurg.models.predict_config import DepthSettings, FitSettings
+from bopsurg.models.refine import workers
 from bopsurg.models.refine.arc import ArcModel
 from bopsurg.models.refine.depth_fit import fit_depths
 from bopsurg.models.refine.fit import Evidence, FitResults, Starts, refine_poses
@@ -35,6 +36,7 @@ from bopsurg.models.refine.wire3d import (
     strided_points,
     wire_distances,
 )
+from bopsurg.models.refine.workers import cpu_workers
 
 #: The fit's evidence from a segmenter: ``full`` (the default when the segmenter predicts the
 #: full, amodal mask: the arc may lie on the full mask, the pixels it must explain are the
@@ -279,17 +281,25 @@ class NeedleRefiner:
         n, s = len(R), self.settings
         Ks = np.broadcast_to(np.asarray(K, float), (n, 3, 3))
         depths = _per_roi(depth, n)
-        evidence, points = [], []
-        for i in range(n):  # preparation, once per ROI: distance transforms, back-projection
-            ev, visible = self._evidence(masks, i)
-            evidence.append(ev)
-            d = depths[i]
-            if d is not None:
-                rows, cols = np.nonzero(visible)
-                uv = ev.origin + ev.step * np.stack([cols, rows], 1)
-                points.append(strided_points(depth_points(uv, d, Ks[i]), self.depth.max_points))
-            else:
-                points.append(None)
+
+        def prepare(rois: np.ndarray) -> list[tuple[Evidence, np.ndarray | None]]:
+            """Once per ROI: distance transforms, back-projection."""
+            out: list[tuple[Evidence, np.ndarray | None]] = []
+            for i in rois.tolist():
+                ev, visible = self._evidence(masks, i)
+                d, P = depths[i], None
+                if d is not None:
+                    rows, cols = np.nonzero(visible)
+                    uv = ev.origin + ev.step * np.stack([cols, rows], 1)
+                    P = strided_points(depth_points(uv, d, Ks[i]), self.depth.max_points)
+                out.append((ev, P))
+            return out
+
+        with cpu_workers(self.device) as parts:  # OpenCV and numpy let go of the GIL
+            groups = workers.split(np.arange(n), parts)
+            prepared = [x for g in workers.run(prepare, groups) for x in g]
+        evidence = [ev for ev, _ in prepared]
+        points = [P for _, P in prepared]
         with_depth = np.array([p is not None for p in points], bool)
         has = np.flatnonzero(with_depth)
         alone = fit_depths(

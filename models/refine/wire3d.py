@@ -97,18 +97,21 @@ def nearest_arc_points(q: Tensor, arc: ArcModel) -> Tensor:
     return torch.stack([cx, cy, torch.zeros_like(cx)], -1)
 
 
-def _model_points(R: Tensor, t: Tensor, P: Tensor) -> Tensor:
-    """Camera points ``P`` (B, N, 3) in the model frames of poses ``R``, ``t``: R^T (P - t)."""
-    return (P - t[:, None]) @ R
+def _model_points(R: Tensor, t: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Camera points ``P`` (B, N, 3) in the model frames of poses ``R``, ``t``: R^T (P - t),
+    as its x, y, z (B, N) (one product laid out by axis: each is contiguous along N, where
+    a (B, N, 3) product's columns would be strided for all the arithmetic after it)."""
+    q = torch.bmm(R.transpose(1, 2), (P - t[:, None]).transpose(1, 2))  # (B, 3, N)
+    return q[:, 0], q[:, 1], q[:, 2]
 
 
 def wire_distances(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> Tensor:
     """Distances (B, N), mm, of camera points ``P`` (B, N, 3) to the wire's surface (the
     centre line's distance less ``wire_radius``; negative inside) at poses ``R`` (B, 3, 3),
     ``t`` (B, 3)."""
-    q = _model_points(R, t, P)
-    cx, cy = _nearest_xy(q[..., 0], q[..., 1], arc)
-    dx, dy, dz = q[..., 0] - cx, q[..., 1] - cy, q[..., 2]
+    qx, qy, dz = _model_points(R, t, P)
+    cx, cy = _nearest_xy(qx, qy, arc)
+    dx, dy = qx - cx, qy - cy
     out: Tensor = torch.sqrt(dx * dx + dy * dy + dz * dz) - arc.wire_radius
     return out
 
@@ -117,8 +120,7 @@ def wire_residuals_model(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> tupl
     """:func:`wire_residuals` with the derivatives in the model frame, by row: (B, 6, N),
     ``J_cam = blockdiag(R, R) · J_model`` per point (:func:`camera_normal_equations` turns
     their normal equations to the camera's: a 6×6 product instead of one per point)."""
-    q = _model_points(R, t, P)
-    qx, qy, qz = q.unbind(-1)
+    qx, qy, qz = _model_points(R, t, P)
     cx, cy = _nearest_xy(qx, qy, arc)
     dx, dy = qx - cx, qy - cy
     dist = torch.sqrt(dx * dx + dy * dy + qz * qz)

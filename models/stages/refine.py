@@ -18,7 +18,9 @@ import torch
 
 from bopsurg.models.inference import for_inference
 from bopsurg.models.predict_config import RecropSettings, RefineSettings
+from bopsurg.models.refine import workers
 from bopsurg.models.refine.refiner import NeedleRefiner, RoiMasks, Segmenter
+from bopsurg.models.refine.workers import cpu_workers
 from bopsurg.models.stages.head import HeadPoses
 
 #: Re-runs the pose head on grown boxes (m, 4) (x, y, w, h), pixel-centre px, of the ROIs
@@ -176,13 +178,24 @@ class RefineStage:
     ) -> RoiMasks:
         """The segmenter's masks of the ROIs (:meth:`NeedleRefiner.observe`), image by image
         of the batch; K (m, 3, 3) and ``index`` (m,) per ROI."""
-        parts, order = [], []
-        for b in np.unique(index):
-            rows = np.flatnonzero(index == b)
-            sel = torch.as_tensor(rows, device=box_xywh.device)
-            m = self.refiner.observe(image[b : b + 1], K[rows[0]], box_xywh[sel], R[rows], t[rows])
-            parts.append(m)
-            order.append(rows)
+
+        def observe(images: np.ndarray) -> list[RoiMasks]:
+            out = []
+            for b in images.tolist():
+                rows = np.flatnonzero(index == b)
+                sel = torch.as_tensor(rows, device=box_xywh.device)
+                m = self.refiner.observe(
+                    image[b : b + 1], K[rows[0]], box_xywh[sel], R[rows], t[rows]
+                )
+                out.append(m)
+            return out
+
+        # the images side by side, a thread each (the segmenter's small convolutions gain
+        # less from a second intra-op thread than from a second image)
+        with cpu_workers(image.device) as count:
+            groups = workers.split(np.unique(index), count)
+            parts = [m for g in workers.run(observe, groups) for m in g]
+        order = [np.flatnonzero(index == b) for b in np.unique(index)]
         inv = np.argsort(np.concatenate(order), kind="stable")
         return RoiMasks(
             np.concatenate([m.prob for m in parts])[inv],

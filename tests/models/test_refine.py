@@ -184,16 +184,6 @@ def test_the_reused_buffer_made_in_inference_mode_is_written_outside_it(monkeypa
     torch.testing.assert_close(outside[:, 0], inside[:, 1])
 
 
-def test_the_evidence_gradients_are_numpys():
-    from bopsurg.models.refine.fit import _gradient_xy
-
-    f = np.random.default_rng(9).normal(size=(7, 7))
-    gy, gx = np.gradient(f, 0.37)
-    g = _gradient_xy(f, 0.37)
-    np.testing.assert_array_equal(g[0], gx)
-    np.testing.assert_array_equal(g[1], gy)
-
-
 def test_stacked_maps_in_the_reused_buffer_equal_fresh_ones_with_zero_padding():
     """The fit's maps go into a buffer kept between fits: a stack after one of other grids
     (which left other values there) holds each grid and zeros in a smaller grid's padding."""
@@ -309,6 +299,32 @@ def test_the_stage_refines_with_a_segmenter_and_counts(segmenter):
     assert np.isfinite(out.t).all()
     assert stage.stats.refined + stage.stats.kept == 1
     assert (not np.array_equal(out.t[0], t)) == stage.stats.refined
+
+
+def test_the_stage_on_two_threads_gives_the_masks_and_poses_of_one(segmenter):
+    """With two torch threads the images' segmenter passes, the evidence and the fits run
+    in groups side by side: the same masks (exactly) and poses as on one thread."""
+    stage = RefineStage.load(segmenter, RefineSettings(), torch.device("cpu"))
+    R, t = _pose(45.0, 0.0, (0.0, 0.0, 80.0))
+    image = torch.rand(3, 3, 480, 640, generator=torch.Generator().manual_seed(1))
+    box = torch.tensor([[280.0, 200.0, 80.0, 60.0], [300.0, 190.0, 70.0, 70.0]] * 2)
+    index = np.array([0, 0, 2, 1])
+    poses = HeadPoses(np.repeat(R[None], 4, 0), np.repeat(t[None], 4, 0))
+    K4 = np.repeat(K[None], 4, 0)
+    before = torch.get_num_threads()
+    try:
+        out = []
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            masks = stage._observe(image, K4, box, poses.R, poses.t, index)
+            out.append((masks, stage(image, K, box, poses, index=index)))
+    finally:
+        torch.set_num_threads(before)
+    (m1, r1), (m2, r2) = out
+    np.testing.assert_array_equal(m2.prob, m1.prob)
+    np.testing.assert_array_equal(m2.origin, m1.origin)
+    np.testing.assert_allclose(r2.R, r1.R, atol=1e-9)
+    np.testing.assert_allclose(r2.t, r1.t, atol=1e-9)
 
 
 def _stage_on_silhouette(R, t, settings):

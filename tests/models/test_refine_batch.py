@@ -124,6 +124,27 @@ def test_a_batch_equals_its_rois_fitted_alone(the_scene):
         assert alone.changed[0] == together.changed[i]
 
 
+@pytest.mark.parametrize("name", ["rgb", "rgbd", "unheld"])
+def test_a_fit_split_over_two_worker_threads_gives_the_poses_of_one(the_scene, name):
+    """With two torch threads the fits run as two groups of ROIs side by side
+    (:mod:`bopsurg.models.refine.workers`): the same poses and decisions as one thread."""
+    refiner, masks = _refiner(the_scene, name)
+    depth = the_scene.depth if variants()[name][2] else None
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = refiner.fit(masks, K, the_scene.R0, the_scene.t0, depth)
+        torch.set_num_threads(2)
+        two = refiner.fit(masks, K, the_scene.R0, the_scene.t0, depth)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    np.testing.assert_allclose(two.R, one.R, atol=1e-9)
+    np.testing.assert_allclose(two.t, one.t, atol=1e-9)
+    np.testing.assert_array_equal(two.changed, one.changed)
+    np.testing.assert_array_equal(two.unheld, one.unheld)
+
+
 def test_no_roi_gives_no_pose(the_scene):
     refiner, masks = _refiner(the_scene, "rgbd")
     none = np.zeros(0, np.int64)

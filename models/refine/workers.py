@@ -1,0 +1,98 @@
+"""The CPU's cores for the refinement's independent parts: groups of ROIs fitted side by side.
+
+A fit is a batch of small torch ops (thousands of elements each), so one intra-op thread per
+op is best (:func:`.lm.fit_threads`); handing each op to a second thread costs more than it
+saves. The cores are used instead by running independent groups of ROIs at once on a pool of
+threads: a ROI's problem is its own (its starts, its evidence, its stop), torch and OpenCV
+release the GIL inside their kernels, and the groups are joined in their order. As many
+groups as torch had threads when the fit began (``torch.get_num_threads()``, the budget
+``bopsurg predict`` gives the networks), so a run on one thread splits nothing.
+
+A group is padded to its own largest ROI (points, grid), so a split moves a pose by roundoff
+alone (``tests/models/test_refine_batch.py``: a batch equals its ROIs fitted alone).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from typing import TypeVar
+
+import numpy as np
+import torch
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_SIZE = 0
+_LOCK = threading.Lock()
+
+
+def _forget_pool() -> None:
+    """In a forked child the pool's threads do not exist: start a new pool when asked."""
+    global _POOL, _POOL_SIZE
+    _POOL, _POOL_SIZE = None, 0
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """One process-wide pool, kept between calls (its threads keep their own buffers, e.g.
+    :func:`.fit._host_buffer`, warm), grown when more workers are asked for."""
+    global _POOL, _POOL_SIZE
+    with _LOCK:
+        if _POOL is None or workers > _POOL_SIZE:
+            if _POOL is not None:
+                _POOL.shutdown(wait=True)
+            _POOL, _POOL_SIZE = ThreadPoolExecutor(workers, "bopsurg-fit"), workers
+        return _POOL
+
+
+def split(rows: np.ndarray, parts: int, weight: np.ndarray | None = None) -> list[np.ndarray]:
+    """``rows`` in at most ``parts`` consecutive, non-empty groups of about equal total
+    ``weight`` (per row; default 1 each)."""
+    rows = np.asarray(rows)
+    parts = max(1, min(parts, len(rows)))
+    if parts == 1:
+        return [rows]
+    w = np.ones(len(rows)) if weight is None else np.asarray(weight, float)
+    ends = np.cumsum(w)
+    want = ends[-1] * np.arange(1, parts) / parts
+    cut = np.abs(ends[None, :] - want[:, None]).argmin(axis=1) + 1  # nearest share, each cut
+    return [g for g in np.split(rows, np.unique(np.clip(cut, 1, len(rows) - 1))) if len(g)]
+
+
+def run(fn: Callable[[T], R], groups: Sequence[T]) -> list[R]:
+    """``fn`` of each group, side by side on the pool's threads (the last one on the calling
+    thread), in the groups' order; an exception of any is raised."""
+    if len(groups) <= 1:
+        return [fn(g) for g in groups]
+
+    def alone(group: T) -> R:
+        if torch.get_num_threads() != 1:  # a pool thread keeps the count it first saw
+            torch.set_num_threads(1)
+        return fn(group)
+
+    futures = [_pool(len(groups) - 1).submit(alone, g) for g in groups[:-1]]
+    last = fn(groups[-1])
+    return [f.result() for f in futures] + [last]
+
+
+@contextmanager
+def cpu_workers(device: torch.device) -> Iterator[int]:
+    """How many groups to run side by side on ``device`` (the torch threads at entry on a
+    CPU, else 1), with one intra-op thread per op meanwhile; restores the thread count."""
+    if device.type != "cpu":
+        yield 1
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield before
+    finally:
+        torch.set_num_threads(before)
