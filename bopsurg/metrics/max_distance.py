@@ -90,6 +90,12 @@ from bopsurg.metrics.projection_screen import (
     screen_bounds,
     screened_max,
 )
+from bopsurg.metrics.vertex_clusters import (
+    VertexClusters,
+    cluster_bounds,
+    clustered_band,
+    make_clusters,
+)
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -117,6 +123,10 @@ SERIAL_MACS = 1 << 19
 GRID_ELEMENTS = 1 << 16
 #: Pairs per block of MSPD's float32 screen.
 SCREEN_PAIRS = 32
+#: MSPD's full evaluations bound the vertex clusters first for at least this many pairs.
+CLUSTER_MIN_PAIRS = 16
+#: (Pair, cluster) entries per block of the clustered screen (float32 forms: ~256 KiB).
+CLUSTER_ENTRIES = 512
 #: Vertices per block of MSSD's full evaluations.
 VERTEX_BLOCK = 1280
 #: MSSD computes the convex hull only for at least this many (pose, symmetry) evaluations.
@@ -282,6 +292,11 @@ class _Common:
         return ScreenVertices(self.X_ch)
 
     @functools.cached_property
+    def clusters(self) -> VertexClusters | None:
+        """MSPD's vertex clusters (None for small models)."""
+        return make_clusters(self.X_c, self.screen.mono32) if self.screen.usable else None
+
+    @functools.cached_property
     def rho_sym(self) -> float:
         """≥ ‖R_s x + t_s‖ for all s and x, mm (MSPD's camera-plane guard only)."""
         sig = np.linalg.norm(self.R_sym, ord=2, axis=(1, 2))
@@ -311,11 +326,21 @@ class _Kernel:
         """(k,) squared maxima over the subset ``order[:levels[level]]``."""
         raise NotImplementedError
 
-    def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
+    def pairs_full(
+        self,
+        i: I64,
+        s: I64,
+        exact: bool = False,
+        lower: F64 | None = None,
+        cap: F64 | None = None,
+    ) -> tuple[F64, I64]:
         """(k,) squared maxima over all of ``X_c`` and (k,) their indices into ``X_c``.
 
         ``exact``: evaluate with the reference's arithmetic where the fast form could differ
-        in its inf/NaN pattern (MSPD near the camera plane).
+        in its inf/NaN pattern (MSPD near the camera plane). ``lower``: (k,) known lower
+        bounds of the maxima (MSPD: px; they may prune vertices). ``cap``: (k,) values
+        above which a maximum is of no interest: a pair whose maximum provably reaches its
+        cap may return any vertex whose value reaches it (MSPD).
         """
         raise NotImplementedError
 
@@ -450,7 +475,14 @@ class _Kernel3D(_Kernel):
     def pairs_lb(self, i: I64, s: I64, level: int) -> F64:
         return self._pairs_max(i, s, [(0, self.c.levels_mono[level])])[0]
 
-    def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
+    def pairs_full(
+        self,
+        i: I64,
+        s: I64,
+        exact: bool = False,
+        lower: F64 | None = None,
+        cap: F64 | None = None,
+    ) -> tuple[F64, I64]:
         if exact:  # the difference form, for coordinates whose squares overflow
             d = np.einsum("kij,jp->kip", self._diff_mats(i, s), self.c.X_ch)
             return _rowwise_max(np.einsum("kip,kip->kp", d, d))
@@ -709,7 +741,14 @@ class _KernelProj(_Kernel):
                 val[b] = np.einsum("kip,kip->kp", uv, uv).max(axis=1)
         return np.sqrt(val)
 
-    def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
+    def pairs_full(
+        self,
+        i: I64,
+        s: I64,
+        exact: bool = False,
+        lower: F64 | None = None,
+        cap: F64 | None = None,
+    ) -> tuple[F64, I64]:
         if exact:
             v, j = self._full_f64(i, s, exact=True)
             return np.sqrt(v), j
@@ -723,13 +762,24 @@ class _KernelProj(_Kernel):
             val[bad], arg[bad] = self._full_f64(i[bad], s[bad])
         g = np.flatnonzero(ok)
         if g.size:
-            kb = max(1, SERIAL_MACS // (30 * screen.v))
-            bp, bj = screened_max(q[g].astype(np.float32), screen, a[g], b[g], kb, SCREEN_PAIRS)
+            known = [None if x is None else x[g] for x in (lower, cap)]
+            bp, bj = self._band(q[g], a[g], b[g], *known)
             # The band in float64: the maximum over it is the maximum over all vertices.
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 sq = self._sq_flat(i[g][bp], s[g][bp], bj, reference=False)
             val[g], arg[g] = _segment_max(bp, sq, bj, g.size)
         return np.sqrt(val), arg
+
+    def _band(self, q: F64, a: F64, b: F64, lower: F64 | None, cap: F64 | None) -> tuple[I64, I64]:
+        """The float32 screen's band (pair, vertex) of the pairs with forms ``q`` (k, 3, 10):
+        of the clusters that may hold the maximum (enough pairs), else of all vertices."""
+        cl, q32 = self.c.clusters, q.astype(np.float32)
+        if cl is not None and q.shape[0] >= CLUSTER_MIN_PAIRS:
+            bounds = cluster_bounds(q, q32, cl, max(1, SERIAL_MACS // (10 * cl.c)))
+            per = max(1, SERIAL_MACS // (10 * cl.m))
+            return clustered_band(q32, cl, bounds, (a, b), (lower, cap), per, CLUSTER_ENTRIES)
+        kb = max(1, SERIAL_MACS // (30 * self.c.screen.v))
+        return screened_max(q32, self.c.screen, a, b, kb, SCREEN_PAIRS)
 
     def _full_f64(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
         """Maxima over all vertices in float64 (``exact``: true division, as the reference)."""
@@ -834,7 +884,7 @@ def _search(k: _Kernel, g: I64, lb: F64) -> F64:
         ci, cs = _nonzero2d(lb <= kth[:, None])
         lb[ci, cs] = np.maximum(lb[ci, cs], k.pairs_lb(g[ci], cs, 0))
     win_s = np.argmin(lb, axis=1)
-    best, win_j = k.pairs_full(g, win_s)
+    best, win_j = k.pairs_full(g, win_s, lower=lb[rows, win_s] - tol)
     lb[rows, win_s] = np.inf
     ci, cs = _nonzero2d(lb < (best + tol)[:, None])
     clb = lb[ci, cs]
@@ -856,7 +906,8 @@ def _search(k: _Kernel, g: I64, lb: F64) -> F64:
         ci, cs, clb = ci[o], cs[o], clb[o]
         first = np.r_[True, ci[1:] != ci[:-1]]
         fi, fs = ci[first], cs[first]
-        v, j = k.pairs_full(g[fi], fs)
+        # a candidate that reaches best + tol cannot win: its exact maximum is not needed
+        v, j = k.pairs_full(g[fi], fs, lower=clb[first] - tol[fi], cap=best[fi] + tol[fi])
         imp = v < best[fi]
         best[fi[imp]], win_s[fi[imp]], win_j[fi[imp]] = v[imp], fs[imp], j[imp]
         ci, cs, clb = ci[~first], cs[~first], clb[~first]
