@@ -41,7 +41,11 @@ provably do not change the value:
    float32 with an error bound computed per pair (≈ 1e-5 px on the bench) and then, in
    float64, only the vertices whose float32 distance is within twice that bound of the
    float32 maximum (usually one): the float64 maximum over all vertices, at about a third of
-   the cost. The first bounds (per grid vertex ``q`` one product of the rows
+   the cost. From ``CLUSTER_MIN_PAIRS`` pairs on (and 640 vertices), the screen covers only
+   the vertex clusters whose rigorous upper bound reaches a lower bound of the pair's maximum
+   (:mod:`~bopsurg.metrics.vertex_clusters`: a fifth of the vertices on the bench), and a
+   later candidate whose first cluster already exceeds the best value skips the rest. The
+   first bounds (per grid vertex ``q`` one product of the rows
    ``P_g − e_q w_g`` over all symmetries, ``e_q`` the estimate's projection of ``q``) and
    the subset bounds are float32 values lowered by their error bound, so they stay bounds.
 6. **Final value by the reference's formula.** The search uses these cheaper equivalent forms
