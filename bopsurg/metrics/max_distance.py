@@ -127,8 +127,9 @@ SERIAL_MACS = 1 << 19
 GRID_ELEMENTS = 1 << 16
 #: Pairs per block of MSPD's float32 screen.
 SCREEN_PAIRS = 32
-#: MSPD's full evaluations bound the vertex clusters first for at least this many pairs.
-CLUSTER_MIN_PAIRS = 16
+#: MSPD's full evaluations bound the vertex clusters first for at least this many pairs (the
+#: clustered screen's per-call work, ~64 small products, costs as much as ~80 full screens).
+CLUSTER_MIN_PAIRS = 96
 #: (Pair, cluster) entries per block of the clustered screen (float32 forms: ~256 KiB).
 CLUSTER_ENTRIES = 512
 #: Vertices per block of MSSD's full evaluations.

@@ -207,3 +207,24 @@ def test_pruning_never_changes_a_value(seed: int, deg: float) -> None:
         [ref.mspd_ref(R_e[i], t_e[i], R_g[i], t_g[i], K_CAM, pts, syms) for i in range(6)]
     )
     assert_close(mspd(R_e, t_e, R_g, t_g, K_CAM, pts, syms), exp)
+
+
+@pytest.mark.parametrize("model", ["box", "needle"])
+def test_default_clusters_match_reference(model: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Default settings: 1,000 vertices (16 clusters) and 120 poses, so round 0 is pruned."""
+    calls = []
+
+    def spy(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(args[0].shape[0])
+        return vc.clustered_band(*args, **kwargs)
+
+    monkeypatch.setattr(max_distance, "clustered_band", spy)
+    rng = np.random.default_rng(41)
+    pts = box_model(rng, 1000) if model == "box" else arc_model(rng, 1000)
+    syms = symmetry_transforms(CONT_Z, 0.1)
+    R_e, t_e, R_g, t_g = pose_pairs(rng, 120, deg=3.0, mm=3.0)
+    exp = np.array(
+        [ref.mspd_ref(R_e[i], t_e[i], R_g[i], t_g[i], K_CAM, pts, syms) for i in range(120)]
+    )
+    assert_close(mspd(R_e, t_e, R_g, t_g, K_CAM, pts, syms), exp)
+    assert calls[:1] == [120]  # round 0 went through the clusters
