@@ -123,8 +123,9 @@ WORK = 1 << 16
 #: products are memory-bound, so threads gain little, and on a loaded machine waiting for a
 #: descheduled thread costs 10-100x.
 SERIAL_MACS = 1 << 19
-#: Values per block of MSPD's grid bounds (float32: 256 KiB, cache-sized).
-GRID_ELEMENTS = 1 << 16
+#: Values per block of MSPD's grid bounds (float32: 1 MiB; fewer, larger blocks cost fewer
+#: numpy calls than cache-sized ones save).
+GRID_ELEMENTS = 1 << 18
 #: Pairs per block of MSPD's float32 screen.
 SCREEN_PAIRS = 32
 #: MSPD's full evaluations bound the vertex clusters first for at least this many pairs (the
@@ -820,10 +821,10 @@ class _KernelProj(_Kernel):
 
     def _dist_sq(self, i: I64, P_g: F64, jj: I64) -> F64:
         """(k, m) squared projection distances at vertices ``X_c[jj]``, jj (k, m)."""
-        X = self.c.X_ch[:, jj]  # (4, k, m)
+        X = np.take(self.c.X_ch, jj.T, axis=1)  # (4, m, k): pairs on the long inner axis
         ue, ug = _apply(self.P_e[i], X), _apply(P_g, X)
-        d = ue[:, :2] / ue[:, 2:3] - ug[:, :2] / ug[:, 2:3]
-        result: F64 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+        d = ue[:2] / ue[2] - ug[:2] / ug[2]
+        result: F64 = (d[0] * d[0] + d[1] * d[1]).T
         return result
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
@@ -838,14 +839,15 @@ class _KernelProj(_Kernel):
 
 
 def _apply(P: F64, X: F64) -> F64:
-    """``P_k X[:, k, :]`` per k: (k, 3, 4) matrices on (4, k, m) points, (k, 3, m).
+    """``P_k X[:, :, k]`` per k: (k, 3, 4) matrices on (4, m, k) points, (3, m, k).
 
-    Four broadcast multiply-adds (summed in column order, as a dot product): faster than
-    einsum or a stacked matmul of tiny matrices.
+    Four broadcast multiply-adds (summed in column order, as a dot product) over arrays with
+    the pairs innermost: faster than einsum or a stacked matmul of tiny matrices.
     """
-    out: F64 = P[:, :, 0, None] * X[0][:, None, :]
+    p_t = np.ascontiguousarray(P.transpose(1, 2, 0))[:, :, None, :]  # (3, 4, 1, k)
+    out: F64 = p_t[:, 0] * X[0]
     for c in range(1, 4):
-        out += P[:, :, c, None] * X[c][:, None, :]
+        out += p_t[:, c] * X[c]
     return out
 
 
