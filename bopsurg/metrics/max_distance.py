@@ -128,8 +128,8 @@ SERIAL_MACS = 1 << 19
 GRID_ELEMENTS = 1 << 18
 #: Pairs per block of MSPD's float32 screen.
 SCREEN_PAIRS = 32
-#: MSPD's full evaluations bound the vertex clusters first for at least this many pairs (the
-#: clustered screen's per-call work, ~64 small products, costs as much as ~80 full screens).
+#: MSPD's full evaluations bound the vertex clusters first for at least this many pairs (below
+#: it, the clustered screen's fixed work, a small product per cluster, outweighs its saving).
 CLUSTER_MIN_PAIRS = 96
 #: (Pair, cluster) entries per block of the clustered screen (float32 forms: ~256 KiB).
 CLUSTER_ENTRIES = 512

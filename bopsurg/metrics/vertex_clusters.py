@@ -43,6 +43,8 @@ B = NDArray[np.bool_]
 CLUSTER_SIZE = 80
 #: Fewest clusters worth the bounds.
 MIN_CLUSTERS = 8
+#: Most clusters: the bounds' (pairs × clusters) arrays stay a few MB for large models.
+MAX_CLUSTERS = 256
 #: Relative size of the margin that covers the float32 rounding of the bounds: 2⁻¹⁴ ≈ 1000 u,
 #: where the few dozen operations behind each bound round by well under 100 u.
 ROUNDING = 2.0**-14
@@ -71,7 +73,9 @@ class VertexClusters:
 
     def __init__(self, pts: F64, mono32: F32) -> None:
         v = pts.shape[0]
-        levels = int(np.round(np.log2(max(1.0, v / CLUSTER_SIZE))))
+        levels = min(
+            int(np.round(np.log2(max(1.0, v / CLUSTER_SIZE)))), MAX_CLUSTERS.bit_length() - 1
+        )
         self.c, self.m = 1 << levels, -(-v // (1 << levels))
         idx = np.concatenate([np.arange(v), np.arange(self.c * self.m - v) % v])[None]
         coords = np.ascontiguousarray(pts.T)  # (3, V): reductions over contiguous rows

@@ -108,6 +108,10 @@ def test_clusters_cover_every_vertex_and_bound_their_radius() -> None:
     assert np.all(dist.max(axis=1) <= cl.rho)
     assert np.all(cl.rho.astype(np.float32) <= cl.rho32)
     assert vc.make_clusters(pts[:100], cl.mono32[0]) is None  # too few vertices to pay
+    big = box_model(rng, 30000)
+    many = vc.VertexClusters(big, np.zeros((10, 30000), np.float32))
+    assert many.c == vc.MAX_CLUSTERS
+    assert set(many.members.ravel().tolist()) == set(range(30000))
 
 
 @HYP
