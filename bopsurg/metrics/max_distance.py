@@ -133,6 +133,11 @@ SCREEN_PAIRS = 32
 CLUSTER_MIN_PAIRS = 96
 #: (Pair, cluster) entries per block of the clustered screen (float32 forms: ~256 KiB).
 CLUSTER_ENTRIES = 512
+#: MSPD's default chunk: bytes of (pose, symmetry) arrays and most poses. Twice MSSD's: each
+#: chunk repeats MSPD's set-up (grid and cluster buffers, small per-round products), and its
+#: rounds gain from more pairs per numpy call.
+MSPD_CHUNK_BYTES = 32 << 20
+MSPD_CHUNK_POSES = 1024
 #: Vertices per block of MSSD's full evaluations.
 VERTEX_BLOCK = 1280
 #: MSSD computes the convex hull only for at least this many (pose, symmetry) evaluations.
@@ -980,10 +985,10 @@ def _bound_order(pts: F64, m: int) -> I64:
     return result
 
 
-def _default_chunk(n_syms: int) -> int:
-    # ~16 MB of per-chunk arrays: the (pose, symmetry) bound grids and their masks.
+def _default_chunk(n_syms: int, budget: int = 16 << 20, most: int = 512) -> int:
+    # ~budget bytes of per-chunk arrays: the (pose, symmetry) bound grids and their masks.
     per_pose = 8 * (8 * n_syms + 256)
-    return int(np.clip((16 << 20) // per_pose, 1, 512))
+    return int(np.clip(budget // per_pose, 1, most))
 
 
 def min_max_distance_3d(
@@ -1050,7 +1055,7 @@ def min_max_distance_proj(
         pts: (V, 3) float64 model vertices, mm.
         R_sym: (S, 3, 3) float64 symmetry rotations.
         t_sym: (S, 3) float64 symmetry translations, mm.
-        chunk_size: Poses per chunk (default from a ~16 MB budget).
+        chunk_size: Poses per chunk (default from a ~32 MB budget).
 
     Returns:
         (N,) float64, px (NaN/inf where the reference gives them, see the module docstring).
@@ -1059,7 +1064,7 @@ def min_max_distance_proj(
     # so the full evaluations still cover every vertex).
     order = _bound_order(pts, max(LEVEL_POINTS) if R_sym.shape[0] > 1 else 1)
     c = _Common(pts, pts, order, R_sym, t_sym)
-    size = chunk_size or _default_chunk(R_sym.shape[0])
+    size = chunk_size or _default_chunk(R_sym.shape[0], MSPD_CHUNK_BYTES, MSPD_CHUNK_POSES)
     out = np.empty(pairs.n)
     for sl in chunks(pairs.n, size):
         k = _KernelProj(c, pairs.R_est[sl], pairs.t_est[sl], pairs.R_gt[sl], pairs.t_gt[sl], K[sl])
