@@ -46,6 +46,8 @@ F32_LIMIT = 1e17
 #: Index pairs (a ≤ b) of the 10 monomials of a homogeneous point; off-diagonal ones count twice.
 MONO_A, MONO_B = np.triu_indices(4)
 _MONO_HALF_W = np.where(MONO_A == MONO_B, 0.5, 1.0)
+#: Flat (4 × 4) indices of ``(a, b)`` and ``(b, a)`` per monomial.
+_MONO_AB, _MONO_BA = MONO_A * 4 + MONO_B, MONO_B * 4 + MONO_A
 
 
 def monomials(X_h: F64) -> F64:
@@ -67,7 +69,12 @@ def quadric_coefficients(P_e: F64, P_g: F64) -> F64:
     for r in range(2):
         gram[:, r] = P_e[:, r, :, None] * wg - P_g[:, r, :, None] * we
     gram[:, 2] = P_e[:, 2, :, None] * wg
-    result: F64 = (gram[:, :, MONO_A, MONO_B] + gram[:, :, MONO_B, MONO_A]) * _MONO_HALF_W
+    # np.take along the last axis keeps the result C-ordered (fancy indexing after slices
+    # returns a transposed layout that slows every later operation on it)
+    flat = gram.reshape(P_e.shape[0], 3, 16)
+    result: F64 = np.take(flat, _MONO_AB, axis=2)
+    result += np.take(flat, _MONO_BA, axis=2)
+    result *= _MONO_HALF_W
     return result
 
 

@@ -169,10 +169,12 @@ def cluster_bounds(q: F64, q32: F32, cl: VertexClusters, per_product: int) -> tu
     k, c = q.shape[0], cl.c
     qt = np.ascontiguousarray(q32.transpose(1, 0, 2))  # (3, k, 10)
     # (3, 3, k, 4): ∂_i N = grad_rows[., i] · [x; 1]
-    grad_rows = np.ascontiguousarray((qt[:, :, _GRAD_T] * _GRAD_W).transpose(0, 2, 1, 3))
+    grad_rows = np.ascontiguousarray((np.take(qt, _GRAD_T, axis=2) * _GRAD_W).transpose(0, 2, 1, 3))
     at_r = _rows_times(qt.reshape(3 * k, 10), cl.mono_r32, per_product).reshape(3, k, c)
     g = _rows_times(grad_rows.reshape(9 * k, 4), cl.r_h32, per_product).reshape(3, 3, k, c)
-    quad = np.sqrt(np.square(q[:, :, _QUAD] * _QUAD_W) @ np.where(_QUAD_W == 1.0, 1.0, 2.0))
+    quad = np.sqrt(
+        np.square(np.take(q, _QUAD, axis=2) * _QUAD_W) @ np.where(_QUAD_W == 1.0, 1.0, 2.0)
+    )
     mag = np.abs(q) @ cl.mono_mag  # (k, 3)
     # Per-pair constants, (k, 1): the quadratic parts and the rounding margin α + β‖f_r‖
     # (|N_w(r)| ≥ 1 at a vertex, to within 1e-8: the factor 2 covers it).
