@@ -45,6 +45,9 @@ CLUSTER_SIZE = 80
 MIN_CLUSTERS = 8
 #: Most clusters: the bounds' (pairs × clusters) arrays stay a few MB for large models.
 MAX_CLUSTERS = 256
+#: Pairs per block of the bounds: their (pairs × clusters) temporaries stay a few hundred KB,
+#: reused from the heap block after block (fresh MB-sized ones cost page faults at every call).
+BOUND_PAIRS = 256
 #: Relative size of the margin that covers the float32 rounding of the bounds: 2⁻¹⁴ ≈ 1000 u,
 #: where the few dozen operations behind each bound round by well under 100 u.
 ROUNDING = 2.0**-14
@@ -54,7 +57,7 @@ _MONO_INDEX = np.zeros((4, 4), np.int64)
 _MONO_INDEX[MONO_A, MONO_B] = _MONO_INDEX[MONO_B, MONO_A] = np.arange(10)
 #: (3, 4) index of the coefficient of ``x_i x_j`` and its factor in ``∂_i`` of a form.
 _GRAD_T = _MONO_INDEX[:3]
-_GRAD_W = np.where(np.arange(3)[:, None] == np.arange(4)[None, :], 2.0, 1.0)
+_GRAD_W = np.where(np.arange(3)[:, None] == np.arange(4)[None, :], 2.0, 1.0).astype(np.float32)
 #: Monomials of the quadratic part (both indices < 3) and their weight in a Frobenius norm.
 _QUAD = np.flatnonzero(MONO_B < 3)
 _QUAD_W = np.where(MONO_A[_QUAD] == MONO_B[_QUAD], 1.0, 0.5)
@@ -96,7 +99,7 @@ class VertexClusters:
         dist2 = np.square(x - r.T[:, :, None]).sum(axis=0)
         self.rho: F64 = np.sqrt(dist2.max(axis=1)) * (1 + 2**-48)
         self.rho2: F64 = self.rho * self.rho * (1 + 2**-50)
-        self.r_h: F64 = np.r_[r.T, np.ones((1, self.c))]  # (4, C)
+        self.r_h: F64 = np.ascontiguousarray(np.r_[r.T, np.ones((1, self.c))])  # (4, C)
         self.mono_r: F64 = monomials(self.r_h)  # (10, C)
         # |m_t(r)|, ‖∇m_t(r)‖ ρ and the quadratic terms are all below (X_a + ρ)(X_b + ρ)
         # (X_3 = 1 and no ρ for the homogeneous coordinate): the magnitudes behind the
@@ -166,11 +169,22 @@ def cluster_bounds(q: F64, q32: F32, cl: VertexClusters, per_product: int) -> tu
         representative and ``up`` ≥ it at every vertex of the cluster (inf where the bound
         does not hold; NaN for non-finite input).
     """
+    k = q.shape[0]
+    low, up = np.empty((k, cl.c), np.float32), np.empty((k, cl.c), np.float32)
+    for p0 in range(0, k, BOUND_PAIRS):
+        p1 = min(k, p0 + BOUND_PAIRS)
+        low[p0:p1], up[p0:p1] = _block_bounds(q[p0:p1], q32[p0:p1], cl, per_product)
+    return low, up
+
+
+def _block_bounds(q: F64, q32: F32, cl: VertexClusters, per_product: int) -> tuple[F32, F32]:
+    """:func:`cluster_bounds` of one block of pairs."""
     k, c = q.shape[0], cl.c
     qt = np.ascontiguousarray(q32.transpose(1, 0, 2))  # (3, k, 10)
     # (3, 3, k, 4): ∂_i N = grad_rows[., i] · [x; 1]
     grad_rows = np.ascontiguousarray((np.take(qt, _GRAD_T, axis=2) * _GRAD_W).transpose(0, 2, 1, 3))
     at_r = _rows_times(qt.reshape(3 * k, 10), cl.mono_r32, per_product).reshape(3, k, c)
+    # float32 operands, C-ordered: a float64 or strided operand takes numpy's slow loop
     g = _rows_times(grad_rows.reshape(9 * k, 4), cl.r_h32, per_product).reshape(3, 3, k, c)
     quad = np.sqrt(
         np.square(np.take(q, _QUAD, axis=2) * _QUAD_W) @ np.where(_QUAD_W == 1.0, 1.0, 2.0)
