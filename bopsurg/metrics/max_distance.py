@@ -128,6 +128,8 @@ SERIAL_MACS = 1 << 19
 GRID_ELEMENTS = 1 << 18
 #: Pairs per block of MSPD's float32 screen.
 SCREEN_PAIRS = 32
+#: Pairs per block of MSPD's bounds at given vertices.
+AT_PAIRS = 1024
 #: MSPD's full evaluations bound the vertex clusters first for at least this many pairs (below
 #: it, the clustered screen's fixed work, a small product per cluster, outweighs its saving).
 CLUSTER_MIN_PAIRS = 96
@@ -554,11 +556,11 @@ class _KernelProj(_Kernel):
         # The screen's forms over w_min² (≤ |w_e w_g|): |N_w| ≥ 1, sizes near the distances.
         self.scale = 1.0 / np.where(self.unsafe, 1.0, self.w_min) ** 2
         if self.B is not None:
-            mats = self.B.reshape(self.n * 3, 3, 4)
-            q = quadric_coefficients(np.repeat(self.P_e, 3, axis=0), mats)
-            self.C = np.ascontiguousarray(
-                q.reshape(self.n, 3, 3, 10) * self.scale[:, None, None, None]
-            )
+            # one family term at a time: a third of the temporaries, reused from the heap
+            self.C = np.empty((self.n, 3, 3, 10))
+            for j in range(3):
+                q = quadric_coefficients(self.P_e, self.B[:, j])
+                np.multiply(q, self.scale[:, None, None], out=self.C[:, j])
         self.t_raw = raw_term_sizes(self.rows_e, self.rows_g) * self.scale[:, None]
 
     def _guard(self, R_e: F64, te: F64) -> None:
@@ -653,7 +655,7 @@ class _KernelProj(_Kernel):
         c, m1, S = self.c, self.c.m1, self.s
         cols = [np.ascontiguousarray(c.Y1[:, q * S : (q + 1) * S], dtype=dt) for q in range(m1)]
         rows_t = np.moveaxis(rows.astype(dt), 0, 2)  # (m1, 3, n, 4)
-        out = np.empty((self.n, S), dt)
+        out = np.empty((self.n, S))
         u = float(np.finfo(dt).eps) / 2.0
         scale = (1.0 - (b + 8.0 * u)).astype(dt)
         shift = np.where(a > 0.0, a * (1.0 + 4.0 * u), 0.0).astype(dt)  # ≥ a after rounding
@@ -676,13 +678,12 @@ class _KernelProj(_Kernel):
                 np.add(sq, tmp, out=sq)
                 np.multiply(f[:, 2], f[:, 2], out=tmp)
                 np.divide(sq, tmp, out=sq)
-                o = np.max(sq, axis=0, out=out[blk])
+                o = np.max(sq, axis=0, out=tmp[0])
                 np.sqrt(o, out=o)
                 np.multiply(o, scale[blk, None], out=o)
                 np.subtract(o, shift[blk, None], out=o)
-                np.maximum(o, 0.0, out=o)
-        result: F64 = out.astype(np.float64)
-        return result
+                np.maximum(o, 0.0, out=out[blk])  # float64: exact
+        return out
 
     def _gt_mats(self, i: I64, s: I64) -> F64:
         """``P_g,s`` per pair for the bounds (the family form when there is one): (k, 3, 4)."""
@@ -833,10 +834,13 @@ class _KernelProj(_Kernel):
         return result
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
+        # in blocks of pairs: their temporaries are reused from the heap, not fresh pages
+        val = np.empty(i.size)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            sq = self._dist_sq(i, self._gt_mats(i, s), jj)
-        result: F64 = np.sqrt(sq.max(axis=1))
-        return result
+            for b in chunks(i.size, AT_PAIRS):
+                sq = self._dist_sq(i[b], self._gt_mats(i[b], s[b]), jj[b])
+                np.sqrt(sq.max(axis=1), out=val[b])
+        return val
 
     def final(self, i: I64, s: I64, j: I64) -> F64:
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
