@@ -93,6 +93,7 @@ from bopsurg.metrics.projection_screen import (
     raw_term_sizes,
     screen_bounds,
     screened_max,
+    shared_matmul,
 )
 from bopsurg.metrics.vertex_clusters import (
     VertexClusters,
@@ -545,13 +546,14 @@ class _KernelProj(_Kernel):
         self.KR_g = np.matmul(self.K, self.R_g)
         self.Kt_g = np.einsum("nij,nj->ni", self.K, self.tg)
         # |P_g,s| ≤ |K R_g| max_s |[R_s | t_s]| + |[0 | K t_g]| entrywise, for every s.
-        abs_g = np.abs(self.KR_g) @ c.sym_abs
+        abs_g = shared_matmul(np.abs(self.KR_g), c.sym_abs)
         abs_g[:, :, 3] += np.abs(self.Kt_g)
         self.B: F64 | None = None  # (n, 3, 3, 4): P_g,s = B0 + a_s B1 + b_s B2
         if c.family is not None:
             # the family's terms, summed in float64, are as large as |B0| + |a| |B1| + |b| |B2|
             abs_g = np.maximum(abs_g, self._family_mats(abs_g))
-        self.rows_e, self.rows_g = np.abs(self.P_e) @ c.x_abs, abs_g @ c.x_abs  # (n, 3)
+        self.rows_e = shared_matmul(np.abs(self.P_e), c.x_abs)  # (n, 3)
+        self.rows_g = shared_matmul(abs_g, c.x_abs)
         self.C: F64 | None = None  # (n, 3, 3, 10): the screen's forms, likewise
         # The screen's forms over w_min² (≤ |w_e w_g|): |N_w| ≥ 1, sizes near the distances.
         self.scale = 1.0 / np.where(self.unsafe, 1.0, self.w_min) ** 2
@@ -601,12 +603,12 @@ class _KernelProj(_Kernel):
         # |P_fam − P_ref| entrywise: the fit residual and the rounding of both sums.
         amax = np.abs(ab).max(axis=0)
         terms = np.abs(w0) + amax[0] * np.abs(e12[0]) + amax[1] * np.abs(e12[1])
-        abs_fam: F64 = np.abs(self.KR_g) @ terms
+        abs_fam = shared_matmul(np.abs(self.KR_g), terms)
         abs_fam[:, :, 3] += np.abs(self.Kt_g)
-        dev = np.abs(self.KR_g) @ (residual + 8.0 * EPS * terms) + 8.0 * EPS * abs_g
-        d = dev @ self.c.x_abs  # (n, 3): rows u, v, w over all vertices
+        dev = shared_matmul(np.abs(self.KR_g), residual + 8.0 * EPS * terms) + 8.0 * EPS * abs_g
+        d = shared_matmul(dev, self.c.x_abs)  # (n, 3): rows u, v, w over all vertices
         with np.errstate(divide="ignore", invalid="ignore"):
-            rows = np.maximum(abs_g, abs_fam) @ self.c.x_abs
+            rows = shared_matmul(np.maximum(abs_g, abs_fam), self.c.x_abs)
             u_max = (rows[:, 0] + rows[:, 1]) / self.w_min  # ≥ |u| + |v| of the GT points
             fit = 2.0 * (d[:, 0] + d[:, 1] + u_max * d[:, 2]) / (self.w_min - d[:, 2])
         self.tol = np.where(fit >= 0.0, self.tol + fit, np.inf)
@@ -620,7 +622,7 @@ class _KernelProj(_Kernel):
         (V − e_v W)²) / W²``.
         """
         rows, a, b = self._grid_rows()
-        if np.all(np.abs(rows) @ self.c.y_abs < F32_LIMIT):
+        if np.all(shared_matmul(np.abs(rows), self.c.y_abs) < F32_LIMIT):
             return self._grid_max(rows, np.float32, a, b)
         # float64 throughout: its rounding is within tol, as for the other bounds
         return self._grid_max(rows, np.float64, np.zeros(self.n), np.zeros(self.n))
@@ -635,8 +637,8 @@ class _KernelProj(_Kernel):
         rows[:, :, :2] -= e[:, :, :, None] * P_g[:, None, 2:3, :]
         # Per (pose, q): float32 rounding of the 4-term products (inputs included) and float64
         # rounding of forming the rows, as in projection_screen.screen_bounds.
-        raw = np.abs(P_g) @ c.y_abs  # (n, 3)
-        err = 8.0 * U32 * (np.abs(rows) @ c.y_abs)  # (n, m1, 3)
+        raw = shared_matmul(np.abs(P_g), c.y_abs)  # (n, 3)
+        err = 8.0 * U32 * shared_matmul(np.abs(rows), c.y_abs)  # (n, m1, 3)
         err[:, :, :2] += 8.0 * U64 * (raw[:, None, :2] + np.abs(e) * raw[:, None, 2:])
         err[:, :, 2] += 8.0 * U64 * raw[:, None, 2]
         w_min = np.where(self.unsafe, 1.0, self.w_min)[:, None]  # ≤ |W| (safe poses)

@@ -50,6 +50,15 @@ _MONO_HALF_W = np.where(MONO_A == MONO_B, 0.5, 1.0)
 _MONO_AB, _MONO_BA = MONO_A * 4 + MONO_B, MONO_B * 4 + MONO_A
 
 
+def shared_matmul(a: F64, b: F64) -> F64:
+    """``a @ b`` for a stack ``a`` (..., n) and one ``b`` (n,) or (n, p), as one product.
+
+    numpy runs a stacked product as one BLAS call per matrix: slow for many small ones.
+    """
+    result: F64 = (a.reshape(-1, a.shape[-1]) @ b).reshape(*a.shape[:-1], *b.shape[1:])
+    return result
+
+
 def monomials(X_h: F64) -> F64:
     """The 10 products ``X_a X_b`` (a ≤ b) of homogeneous points (4, V), as (10, V)."""
     result: F64 = X_h[MONO_A] * X_h[MONO_B]
@@ -105,7 +114,7 @@ def screen_bounds(q: F64, t_raw: F64, mono_max: F64) -> tuple[F64, F64, B]:
         ``(a, b, ok)``: (k,) each; ``ok`` false where float32 must not be used (terms near
         its range, a bound too loose to be useful, or non-finite input).
     """
-    sizes = np.abs(q) @ mono_max  # (k, 3) sizes of the cancelled terms
+    sizes = shared_matmul(np.abs(q), mono_max)  # (k, 3) sizes of the cancelled terms
     # 16u where 12u (coefficient, monomial, product, 10-term sum) suffices: the margin, ≥ 4u
     # since |N_w| ≥ 1 makes sizes[:, 2] ≥ 1, also covers |N_w| ≥ 1 holding only to ~1e-8
     # (the bound w_min in float64, the symmetry family's fit).

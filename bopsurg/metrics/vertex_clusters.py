@@ -32,7 +32,13 @@ import itertools
 import numpy as np
 from numpy.typing import NDArray
 
-from bopsurg.metrics.projection_screen import MONO_A, MONO_B, band_threshold, monomials
+from bopsurg.metrics.projection_screen import (
+    MONO_A,
+    MONO_B,
+    band_threshold,
+    monomials,
+    shared_matmul,
+)
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -187,9 +193,11 @@ def _block_bounds(q: F64, q32: F32, cl: VertexClusters, per_product: int) -> tup
     # float32 operands, C-ordered: a float64 or strided operand takes numpy's slow loop
     g = _rows_times(grad_rows.reshape(9 * k, 4), cl.r_h32, per_product).reshape(3, 3, k, c)
     quad = np.sqrt(
-        np.square(np.take(q, _QUAD, axis=2) * _QUAD_W) @ np.where(_QUAD_W == 1.0, 1.0, 2.0)
+        shared_matmul(
+            np.square(np.take(q, _QUAD, axis=2) * _QUAD_W), np.where(_QUAD_W == 1.0, 1.0, 2.0)
+        )
     )
-    mag = np.abs(q) @ cl.mono_mag  # (k, 3)
+    mag = shared_matmul(np.abs(q), cl.mono_mag)  # (k, 3)
     # Per-pair constants, (k, 1): the quadratic parts and the rounding margin α + β‖f_r‖
     # (|N_w(r)| ≥ 1 at a vertex, to within 1e-8: the factor 2 covers it).
     q_uv = np.hypot(quad[:, 0], quad[:, 1]).astype(np.float32)[:, None]
