@@ -46,8 +46,6 @@ F32_LIMIT = 1e17
 #: Index pairs (a ≤ b) of the 10 monomials of a homogeneous point; off-diagonal ones count twice.
 MONO_A, MONO_B = np.triu_indices(4)
 _MONO_HALF_W = np.where(MONO_A == MONO_B, 0.5, 1.0)
-#: Flat (4 × 4) indices of ``(a, b)`` and ``(b, a)`` per monomial.
-_MONO_AB, _MONO_BA = MONO_A * 4 + MONO_B, MONO_B * 4 + MONO_A
 
 
 def shared_matmul(a: F64, b: F64) -> F64:
@@ -72,18 +70,21 @@ def quadric_coefficients(P_e: F64, P_g: F64) -> F64:
         P_e: (k, 3, 4) estimate projection matrices ``K [R_e | t_e]``.
         P_g: (k, 3, 4) GT(-symmetry) projection matrices.
     """
-    gram = np.empty((P_e.shape[0], 3, 4, 4))
-    we, wg = P_e[:, 2, None, :], P_g[:, 2, None, :]
-    # G_r[a, b]: the coefficient of x_a x_b before symmetrising (r = u, v, w).
-    for r in range(2):
-        gram[:, r] = P_e[:, r, :, None] * wg - P_g[:, r, :, None] * we
-    gram[:, 2] = P_e[:, 2, :, None] * wg
-    # np.take along the last axis keeps the result C-ordered (fancy indexing after slices
-    # returns a transposed layout that slows every later operation on it)
-    flat = gram.reshape(P_e.shape[0], 3, 16)
-    result: F64 = np.take(flat, _MONO_AB, axis=2)
-    result += np.take(flat, _MONO_BA, axis=2)
-    result *= _MONO_HALF_W
+    # Poses on the last axis: long inner loops (the (4, 4) products per pose are too short to
+    # vectorise). np.take keeps each gathered array C-ordered.
+    pe = np.ascontiguousarray(P_e.transpose(1, 2, 0))  # (3, 4, k)
+    pg = np.ascontiguousarray(P_g.transpose(1, 2, 0))
+    e_a, e_b = np.take(pe, MONO_A, axis=1), np.take(pe, MONO_B, axis=1)  # (3, 10, k)
+    g_a, g_b = np.take(pg[:2], MONO_A, axis=1), np.take(pg[:2], MONO_B, axis=1)
+    # G_r[a, b] = e_ra w_gb − g_ra w_eb (r = u, v), e_wa w_gb (r = w); coefficient of x_a x_b:
+    # G_r[a, b] + G_r[b, a] (a < b), G_r[a, a]
+    out = np.multiply(e_a, pg[2, MONO_B])
+    out[:2] -= g_a * pe[2, MONO_B]
+    g_ba = np.multiply(e_b, pg[2, MONO_A])
+    g_ba[:2] -= g_b * pe[2, MONO_A]
+    out += g_ba
+    out *= _MONO_HALF_W[:, None]
+    result: F64 = np.ascontiguousarray(out.transpose(2, 0, 1))
     return result
 
 
