@@ -110,7 +110,7 @@ class VertexClusters:
         # |m_t(r)|, ‖∇m_t(r)‖ ρ and the quadratic terms are all below (X_a + ρ)(X_b + ρ)
         # (X_3 = 1 and no ρ for the homogeneous coordinate): the magnitudes behind the
         # rounding margin.
-        ext = np.r_[np.abs(pts).max(axis=0) + float(self.rho.max()), 1.0]
+        ext = np.r_[np.abs(coords).max(axis=1) + float(self.rho.max()), 1.0]
         self.mono_mag: F64 = ext[MONO_A] * ext[MONO_B]  # (10,)
         self.mono32: F32 = np.ascontiguousarray(np.take(mono32, idx, axis=1).transpose(1, 0, 2))
         self.mono_r32 = self.mono_r.astype(np.float32)
