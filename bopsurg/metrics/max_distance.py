@@ -732,11 +732,15 @@ class _KernelProj(_Kernel):
             q = self._coeffs(ib, sb)
             a, b, ok = screen_bounds(q, self.t_raw[ib], self.c.screen.mono_max)
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # ok is false
-                f = (q.astype(np.float32).reshape(-1, 10) @ mono).reshape(-1, 3, m)
+                # (m, 3, k): the pairs innermost, so the maximum over the vertices runs
+                # across rows (the subset's rows are too short for a fast reduction)
+                q32 = np.empty((3, ib.size, 10), np.float32)
+                np.copyto(q32, q.transpose(1, 0, 2), casting="same_kind")
+                f = (mono.T @ q32.reshape(-1, 10).T).reshape(m, 3, -1)
                 d2 = np.square(f[:, 0])
                 d2 += np.square(f[:, 1])
                 d2 /= np.square(f[:, 2])
-                d = np.sqrt(d2.max(axis=1).astype(np.float64))
+                d = np.sqrt(d2.max(axis=0).astype(np.float64))
                 v = np.maximum(d * (1.0 - b) - a, 0.0)
             if not (ok.all() and self.c.screen.usable):
                 bad = np.flatnonzero(~ok) if self.c.screen.usable else np.arange(ib.size)
