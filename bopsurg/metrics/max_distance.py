@@ -41,7 +41,11 @@ provably do not change the value:
    float32 with an error bound computed per pair (≈ 1e-5 px on the bench) and then, in
    float64, only the vertices whose float32 distance is within twice that bound of the
    float32 maximum (usually one): the float64 maximum over all vertices, at about a third of
-   the cost. The first bounds (per grid vertex ``q`` one product of the rows
+   the cost. From ``CLUSTER_MIN_PAIRS`` pairs on (and 640 vertices), the screen covers only
+   the vertex clusters whose rigorous upper bound reaches a lower bound of the pair's maximum
+   (:mod:`~bopsurg.metrics.vertex_clusters`: a fifth of the vertices on the bench), and a
+   later candidate whose first cluster already exceeds the best value skips the rest. The
+   first bounds (per grid vertex ``q`` one product of the rows
    ``P_g − e_q w_g`` over all symmetries, ``e_q`` the estimate's projection of ``q``) and
    the subset bounds are float32 values lowered by their error bound, so they stay bounds.
 6. **Final value by the reference's formula.** The search uses these cheaper equivalent forms
@@ -89,6 +93,13 @@ from bopsurg.metrics.projection_screen import (
     raw_term_sizes,
     screen_bounds,
     screened_max,
+    shared_matmul,
+)
+from bopsurg.metrics.vertex_clusters import (
+    VertexClusters,
+    cluster_bounds,
+    clustered_band,
+    make_clusters,
 )
 
 F64 = NDArray[np.float64]
@@ -113,10 +124,23 @@ WORK = 1 << 16
 #: products are memory-bound, so threads gain little, and on a loaded machine waiting for a
 #: descheduled thread costs 10-100x.
 SERIAL_MACS = 1 << 19
-#: Values per block of MSPD's grid bounds (float32: 256 KiB, cache-sized).
-GRID_ELEMENTS = 1 << 16
+#: Values per block of MSPD's grid bounds (float32: 1 MiB; fewer, larger blocks cost fewer
+#: numpy calls than cache-sized ones save).
+GRID_ELEMENTS = 1 << 18
 #: Pairs per block of MSPD's float32 screen.
 SCREEN_PAIRS = 32
+#: Pairs per block of MSPD's bounds at given vertices.
+AT_PAIRS = 1024
+#: MSPD's full evaluations bound the vertex clusters first for at least this many pairs (below
+#: it, the clustered screen's fixed work, a small product per cluster, outweighs its saving).
+CLUSTER_MIN_PAIRS = 96
+#: (Pair, cluster) entries per block of the clustered screen (float32 forms: ~256 KiB).
+CLUSTER_ENTRIES = 512
+#: MSPD's default chunk: bytes of (pose, symmetry) arrays and most poses. Twice MSSD's: each
+#: chunk repeats MSPD's set-up (grid and cluster buffers, small per-round products), and its
+#: rounds gain from more pairs per numpy call.
+MSPD_CHUNK_BYTES = 32 << 20
+MSPD_CHUNK_POSES = 1024
 #: Vertices per block of MSSD's full evaluations.
 VERTEX_BLOCK = 1280
 #: MSSD computes the convex hull only for at least this many (pose, symmetry) evaluations.
@@ -282,6 +306,11 @@ class _Common:
         return ScreenVertices(self.X_ch)
 
     @functools.cached_property
+    def clusters(self) -> VertexClusters | None:
+        """MSPD's vertex clusters (None for small models)."""
+        return make_clusters(self.X_c, self.screen.mono32) if self.screen.usable else None
+
+    @functools.cached_property
     def rho_sym(self) -> float:
         """≥ ‖R_s x + t_s‖ for all s and x, mm (MSPD's camera-plane guard only)."""
         sig = np.linalg.norm(self.R_sym, ord=2, axis=(1, 2))
@@ -311,11 +340,21 @@ class _Kernel:
         """(k,) squared maxima over the subset ``order[:levels[level]]``."""
         raise NotImplementedError
 
-    def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
+    def pairs_full(
+        self,
+        i: I64,
+        s: I64,
+        exact: bool = False,
+        lower: F64 | None = None,
+        cap: F64 | None = None,
+    ) -> tuple[F64, I64]:
         """(k,) squared maxima over all of ``X_c`` and (k,) their indices into ``X_c``.
 
         ``exact``: evaluate with the reference's arithmetic where the fast form could differ
-        in its inf/NaN pattern (MSPD near the camera plane).
+        in its inf/NaN pattern (MSPD near the camera plane). ``lower``: (k,) known lower
+        bounds of the maxima (MSPD: px; they may prune vertices). ``cap``: (k,) values
+        above which a maximum is of no interest: a pair whose maximum provably reaches its
+        cap may return any vertex whose value reaches it (MSPD).
         """
         raise NotImplementedError
 
@@ -450,7 +489,14 @@ class _Kernel3D(_Kernel):
     def pairs_lb(self, i: I64, s: I64, level: int) -> F64:
         return self._pairs_max(i, s, [(0, self.c.levels_mono[level])])[0]
 
-    def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
+    def pairs_full(
+        self,
+        i: I64,
+        s: I64,
+        exact: bool = False,
+        lower: F64 | None = None,
+        cap: F64 | None = None,
+    ) -> tuple[F64, I64]:
         if exact:  # the difference form, for coordinates whose squares overflow
             d = np.einsum("kij,jp->kip", self._diff_mats(i, s), self.c.X_ch)
             return _rowwise_max(np.einsum("kip,kip->kp", d, d))
@@ -500,22 +546,23 @@ class _KernelProj(_Kernel):
         self.KR_g = np.matmul(self.K, self.R_g)
         self.Kt_g = np.einsum("nij,nj->ni", self.K, self.tg)
         # |P_g,s| ≤ |K R_g| max_s |[R_s | t_s]| + |[0 | K t_g]| entrywise, for every s.
-        abs_g = np.abs(self.KR_g) @ c.sym_abs
+        abs_g = shared_matmul(np.abs(self.KR_g), c.sym_abs)
         abs_g[:, :, 3] += np.abs(self.Kt_g)
         self.B: F64 | None = None  # (n, 3, 3, 4): P_g,s = B0 + a_s B1 + b_s B2
         if c.family is not None:
             # the family's terms, summed in float64, are as large as |B0| + |a| |B1| + |b| |B2|
             abs_g = np.maximum(abs_g, self._family_mats(abs_g))
-        self.rows_e, self.rows_g = np.abs(self.P_e) @ c.x_abs, abs_g @ c.x_abs  # (n, 3)
+        self.rows_e = shared_matmul(np.abs(self.P_e), c.x_abs)  # (n, 3)
+        self.rows_g = shared_matmul(abs_g, c.x_abs)
         self.C: F64 | None = None  # (n, 3, 3, 10): the screen's forms, likewise
         # The screen's forms over w_min² (≤ |w_e w_g|): |N_w| ≥ 1, sizes near the distances.
         self.scale = 1.0 / np.where(self.unsafe, 1.0, self.w_min) ** 2
         if self.B is not None:
-            mats = self.B.reshape(self.n * 3, 3, 4)
-            q = quadric_coefficients(np.repeat(self.P_e, 3, axis=0), mats)
-            self.C = np.ascontiguousarray(
-                q.reshape(self.n, 3, 3, 10) * self.scale[:, None, None, None]
-            )
+            # one family term at a time: a third of the temporaries, reused from the heap
+            self.C = np.empty((self.n, 3, 3, 10))
+            for j in range(3):
+                q = quadric_coefficients(self.P_e, self.B[:, j])
+                np.multiply(q, self.scale[:, None, None], out=self.C[:, j])
         self.t_raw = raw_term_sizes(self.rows_e, self.rows_g) * self.scale[:, None]
 
     def _guard(self, R_e: F64, te: F64) -> None:
@@ -556,12 +603,12 @@ class _KernelProj(_Kernel):
         # |P_fam − P_ref| entrywise: the fit residual and the rounding of both sums.
         amax = np.abs(ab).max(axis=0)
         terms = np.abs(w0) + amax[0] * np.abs(e12[0]) + amax[1] * np.abs(e12[1])
-        abs_fam: F64 = np.abs(self.KR_g) @ terms
+        abs_fam = shared_matmul(np.abs(self.KR_g), terms)
         abs_fam[:, :, 3] += np.abs(self.Kt_g)
-        dev = np.abs(self.KR_g) @ (residual + 8.0 * EPS * terms) + 8.0 * EPS * abs_g
-        d = dev @ self.c.x_abs  # (n, 3): rows u, v, w over all vertices
+        dev = shared_matmul(np.abs(self.KR_g), residual + 8.0 * EPS * terms) + 8.0 * EPS * abs_g
+        d = shared_matmul(dev, self.c.x_abs)  # (n, 3): rows u, v, w over all vertices
         with np.errstate(divide="ignore", invalid="ignore"):
-            rows = np.maximum(abs_g, abs_fam) @ self.c.x_abs
+            rows = shared_matmul(np.maximum(abs_g, abs_fam), self.c.x_abs)
             u_max = (rows[:, 0] + rows[:, 1]) / self.w_min  # ≥ |u| + |v| of the GT points
             fit = 2.0 * (d[:, 0] + d[:, 1] + u_max * d[:, 2]) / (self.w_min - d[:, 2])
         self.tol = np.where(fit >= 0.0, self.tol + fit, np.inf)
@@ -575,7 +622,7 @@ class _KernelProj(_Kernel):
         (V − e_v W)²) / W²``.
         """
         rows, a, b = self._grid_rows()
-        if np.all(np.abs(rows) @ self.c.y_abs < F32_LIMIT):
+        if np.all(shared_matmul(np.abs(rows), self.c.y_abs) < F32_LIMIT):
             return self._grid_max(rows, np.float32, a, b)
         # float64 throughout: its rounding is within tol, as for the other bounds
         return self._grid_max(rows, np.float64, np.zeros(self.n), np.zeros(self.n))
@@ -590,8 +637,8 @@ class _KernelProj(_Kernel):
         rows[:, :, :2] -= e[:, :, :, None] * P_g[:, None, 2:3, :]
         # Per (pose, q): float32 rounding of the 4-term products (inputs included) and float64
         # rounding of forming the rows, as in projection_screen.screen_bounds.
-        raw = np.abs(P_g) @ c.y_abs  # (n, 3)
-        err = 8.0 * U32 * (np.abs(rows) @ c.y_abs)  # (n, m1, 3)
+        raw = shared_matmul(np.abs(P_g), c.y_abs)  # (n, 3)
+        err = 8.0 * U32 * shared_matmul(np.abs(rows), c.y_abs)  # (n, m1, 3)
         err[:, :, :2] += 8.0 * U64 * (raw[:, None, :2] + np.abs(e) * raw[:, None, 2:])
         err[:, :, 2] += 8.0 * U64 * raw[:, None, 2]
         w_min = np.where(self.unsafe, 1.0, self.w_min)[:, None]  # ≤ |W| (safe poses)
@@ -610,7 +657,7 @@ class _KernelProj(_Kernel):
         c, m1, S = self.c, self.c.m1, self.s
         cols = [np.ascontiguousarray(c.Y1[:, q * S : (q + 1) * S], dtype=dt) for q in range(m1)]
         rows_t = np.moveaxis(rows.astype(dt), 0, 2)  # (m1, 3, n, 4)
-        out = np.empty((self.n, S), dt)
+        out = np.empty((self.n, S))
         u = float(np.finfo(dt).eps) / 2.0
         scale = (1.0 - (b + 8.0 * u)).astype(dt)
         shift = np.where(a > 0.0, a * (1.0 + 4.0 * u), 0.0).astype(dt)  # ≥ a after rounding
@@ -633,13 +680,12 @@ class _KernelProj(_Kernel):
                 np.add(sq, tmp, out=sq)
                 np.multiply(f[:, 2], f[:, 2], out=tmp)
                 np.divide(sq, tmp, out=sq)
-                o = np.max(sq, axis=0, out=out[blk])
+                o = np.max(sq, axis=0, out=tmp[0])
                 np.sqrt(o, out=o)
                 np.multiply(o, scale[blk, None], out=o)
                 np.subtract(o, shift[blk, None], out=o)
-                np.maximum(o, 0.0, out=o)
-        result: F64 = out.astype(np.float64)
-        return result
+                np.maximum(o, 0.0, out=out[blk])  # float64: exact
+        return out
 
     def _gt_mats(self, i: I64, s: I64) -> F64:
         """``P_g,s`` per pair for the bounds (the family form when there is one): (k, 3, 4)."""
@@ -660,7 +706,10 @@ class _KernelProj(_Kernel):
         assert self.c.family is not None
         ab = self.c.family[0][np.ascontiguousarray(s)]
         m = self.C[np.ascontiguousarray(i)]
-        q = m[:, 0] + ab[:, 0, None, None] * m[:, 1] + ab[:, 1, None, None] * m[:, 2]
+        # m0 + a m1 + b m2 (in this order), in place: fewer temporaries
+        q = np.multiply(m[:, 1], ab[:, 0, None, None])
+        q += m[:, 0]
+        q += np.multiply(m[:, 2], ab[:, 1, None, None], out=m[:, 1])
         return q
 
     def _proj_mats(self, i: I64, s: I64) -> F64:
@@ -683,11 +732,15 @@ class _KernelProj(_Kernel):
             q = self._coeffs(ib, sb)
             a, b, ok = screen_bounds(q, self.t_raw[ib], self.c.screen.mono_max)
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # ok is false
-                f = (q.astype(np.float32).reshape(-1, 10) @ mono).reshape(-1, 3, m)
+                # (m, 3, k): the pairs innermost, so the maximum over the vertices runs
+                # across rows (the subset's rows are too short for a fast reduction)
+                q32 = np.empty((3, ib.size, 10), np.float32)
+                np.copyto(q32, q.transpose(1, 0, 2), casting="same_kind")
+                f = (mono.T @ q32.reshape(-1, 10).T).reshape(m, 3, -1)
                 d2 = np.square(f[:, 0])
                 d2 += np.square(f[:, 1])
                 d2 /= np.square(f[:, 2])
-                d = np.sqrt(d2.max(axis=1).astype(np.float64))
+                d = np.sqrt(d2.max(axis=0).astype(np.float64))
                 v = np.maximum(d * (1.0 - b) - a, 0.0)
             if not (ok.all() and self.c.screen.usable):
                 bad = np.flatnonzero(~ok) if self.c.screen.usable else np.arange(ib.size)
@@ -709,7 +762,14 @@ class _KernelProj(_Kernel):
                 val[b] = np.einsum("kip,kip->kp", uv, uv).max(axis=1)
         return np.sqrt(val)
 
-    def pairs_full(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
+    def pairs_full(
+        self,
+        i: I64,
+        s: I64,
+        exact: bool = False,
+        lower: F64 | None = None,
+        cap: F64 | None = None,
+    ) -> tuple[F64, I64]:
         if exact:
             v, j = self._full_f64(i, s, exact=True)
             return np.sqrt(v), j
@@ -723,13 +783,24 @@ class _KernelProj(_Kernel):
             val[bad], arg[bad] = self._full_f64(i[bad], s[bad])
         g = np.flatnonzero(ok)
         if g.size:
-            kb = max(1, SERIAL_MACS // (30 * screen.v))
-            bp, bj = screened_max(q[g].astype(np.float32), screen, a[g], b[g], kb, SCREEN_PAIRS)
+            known = [None if x is None else x[g] for x in (lower, cap)]
+            bp, bj = self._band(q[g], a[g], b[g], *known)
             # The band in float64: the maximum over it is the maximum over all vertices.
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 sq = self._sq_flat(i[g][bp], s[g][bp], bj, reference=False)
             val[g], arg[g] = _segment_max(bp, sq, bj, g.size)
         return np.sqrt(val), arg
+
+    def _band(self, q: F64, a: F64, b: F64, lower: F64 | None, cap: F64 | None) -> tuple[I64, I64]:
+        """The float32 screen's band (pair, vertex) of the pairs with forms ``q`` (k, 3, 10):
+        of the clusters that may hold the maximum (enough pairs), else of all vertices."""
+        cl, q32 = self.c.clusters, q.astype(np.float32)
+        if cl is not None and q.shape[0] >= CLUSTER_MIN_PAIRS:
+            bounds = cluster_bounds(q, q32, cl, max(1, SERIAL_MACS // (10 * cl.c)))
+            per = max(1, SERIAL_MACS // (10 * cl.m))
+            return clustered_band(q32, cl, bounds, (a, b), (lower, cap), per, CLUSTER_ENTRIES)
+        kb = max(1, SERIAL_MACS // (30 * self.c.screen.v))
+        return screened_max(q32, self.c.screen, a, b, kb, SCREEN_PAIRS)
 
     def _full_f64(self, i: I64, s: I64, exact: bool = False) -> tuple[F64, I64]:
         """Maxima over all vertices in float64 (``exact``: true division, as the reference)."""
@@ -765,17 +836,20 @@ class _KernelProj(_Kernel):
 
     def _dist_sq(self, i: I64, P_g: F64, jj: I64) -> F64:
         """(k, m) squared projection distances at vertices ``X_c[jj]``, jj (k, m)."""
-        X = self.c.X_ch[:, jj]  # (4, k, m)
+        X = np.take(self.c.X_ch, jj.T, axis=1)  # (4, m, k): pairs on the long inner axis
         ue, ug = _apply(self.P_e[i], X), _apply(P_g, X)
-        d = ue[:, :2] / ue[:, 2:3] - ug[:, :2] / ug[:, 2:3]
-        result: F64 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+        d = ue[:2] / ue[2] - ug[:2] / ug[2]
+        result: F64 = (d[0] * d[0] + d[1] * d[1]).T
         return result
 
     def pairs_at(self, i: I64, s: I64, jj: I64) -> F64:
+        # in blocks of pairs: their temporaries are reused from the heap, not fresh pages
+        val = np.empty(i.size)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            sq = self._dist_sq(i, self._gt_mats(i, s), jj)
-        result: F64 = np.sqrt(sq.max(axis=1))
-        return result
+            for b in chunks(i.size, AT_PAIRS):
+                sq = self._dist_sq(i[b], self._gt_mats(i[b], s[b]), jj[b])
+                np.sqrt(sq.max(axis=1), out=val[b])
+        return val
 
     def final(self, i: I64, s: I64, j: I64) -> F64:
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -783,14 +857,15 @@ class _KernelProj(_Kernel):
 
 
 def _apply(P: F64, X: F64) -> F64:
-    """``P_k X[:, k, :]`` per k: (k, 3, 4) matrices on (4, k, m) points, (k, 3, m).
+    """``P_k X[:, :, k]`` per k: (k, 3, 4) matrices on (4, m, k) points, (3, m, k).
 
-    Four broadcast multiply-adds (summed in column order, as a dot product): faster than
-    einsum or a stacked matmul of tiny matrices.
+    Four broadcast multiply-adds (summed in column order, as a dot product) over arrays with
+    the pairs innermost: faster than einsum or a stacked matmul of tiny matrices.
     """
-    out: F64 = P[:, :, 0, None] * X[0][:, None, :]
+    p_t = np.ascontiguousarray(P.transpose(1, 2, 0))[:, :, None, :]  # (3, 4, 1, k)
+    out: F64 = p_t[:, 0] * X[0]
     for c in range(1, 4):
-        out += P[:, :, c, None] * X[c][:, None, :]
+        out += p_t[:, c] * X[c]
     return out
 
 
@@ -834,7 +909,7 @@ def _search(k: _Kernel, g: I64, lb: F64) -> F64:
         ci, cs = _nonzero2d(lb <= kth[:, None])
         lb[ci, cs] = np.maximum(lb[ci, cs], k.pairs_lb(g[ci], cs, 0))
     win_s = np.argmin(lb, axis=1)
-    best, win_j = k.pairs_full(g, win_s)
+    best, win_j = k.pairs_full(g, win_s, lower=lb[rows, win_s] - tol)
     lb[rows, win_s] = np.inf
     ci, cs = _nonzero2d(lb < (best + tol)[:, None])
     clb = lb[ci, cs]
@@ -856,7 +931,8 @@ def _search(k: _Kernel, g: I64, lb: F64) -> F64:
         ci, cs, clb = ci[o], cs[o], clb[o]
         first = np.r_[True, ci[1:] != ci[:-1]]
         fi, fs = ci[first], cs[first]
-        v, j = k.pairs_full(g[fi], fs)
+        # a candidate that reaches best + tol cannot win: its exact maximum is not needed
+        v, j = k.pairs_full(g[fi], fs, lower=clb[first] - tol[fi], cap=best[fi] + tol[fi])
         imp = v < best[fi]
         best[fi[imp]], win_s[fi[imp]], win_j[fi[imp]] = v[imp], fs[imp], j[imp]
         ci, cs, clb = ci[~first], cs[~first], clb[~first]
@@ -922,10 +998,10 @@ def _bound_order(pts: F64, m: int) -> I64:
     return result
 
 
-def _default_chunk(n_syms: int) -> int:
-    # ~16 MB of per-chunk arrays: the (pose, symmetry) bound grids and their masks.
+def _default_chunk(n_syms: int, budget: int = 16 << 20, most: int = 512) -> int:
+    # ~budget bytes of per-chunk arrays: the (pose, symmetry) bound grids and their masks.
     per_pose = 8 * (8 * n_syms + 256)
-    return int(np.clip((16 << 20) // per_pose, 1, 512))
+    return int(np.clip(budget // per_pose, 1, most))
 
 
 def min_max_distance_3d(
@@ -992,7 +1068,7 @@ def min_max_distance_proj(
         pts: (V, 3) float64 model vertices, mm.
         R_sym: (S, 3, 3) float64 symmetry rotations.
         t_sym: (S, 3) float64 symmetry translations, mm.
-        chunk_size: Poses per chunk (default from a ~16 MB budget).
+        chunk_size: Poses per chunk (default from a ~32 MB budget).
 
     Returns:
         (N,) float64, px (NaN/inf where the reference gives them, see the module docstring).
@@ -1001,7 +1077,7 @@ def min_max_distance_proj(
     # so the full evaluations still cover every vertex).
     order = _bound_order(pts, max(LEVEL_POINTS) if R_sym.shape[0] > 1 else 1)
     c = _Common(pts, pts, order, R_sym, t_sym)
-    size = chunk_size or _default_chunk(R_sym.shape[0])
+    size = chunk_size or _default_chunk(R_sym.shape[0], MSPD_CHUNK_BYTES, MSPD_CHUNK_POSES)
     out = np.empty(pairs.n)
     for sl in chunks(pairs.n, size):
         k = _KernelProj(c, pairs.R_est[sl], pairs.t_est[sl], pairs.R_gt[sl], pairs.t_gt[sl], K[sl])

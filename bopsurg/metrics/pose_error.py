@@ -197,7 +197,7 @@ def mspd(
         K: (3, 3) or (N, 3, 3) camera matrices.
         pts: (V, 3) model vertices, mm.
         syms: Symmetry set as for :func:`mssd`, or None (identity only).
-        chunk_size: Poses per chunk (memory bound); default from a ~16 MB budget.
+        chunk_size: Poses per chunk (memory bound); default from a ~32 MB budget.
 
     Returns:
         (N,) float64, px.

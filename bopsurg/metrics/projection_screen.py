@@ -48,6 +48,15 @@ MONO_A, MONO_B = np.triu_indices(4)
 _MONO_HALF_W = np.where(MONO_A == MONO_B, 0.5, 1.0)
 
 
+def shared_matmul(a: F64, b: F64) -> F64:
+    """``a @ b`` for a stack ``a`` (..., n) and one ``b`` (n,) or (n, p), as one product.
+
+    numpy runs a stacked product as one BLAS call per matrix: slow for many small ones.
+    """
+    result: F64 = (a.reshape(-1, a.shape[-1]) @ b).reshape(*a.shape[:-1], *b.shape[1:])
+    return result
+
+
 def monomials(X_h: F64) -> F64:
     """The 10 products ``X_a X_b`` (a ≤ b) of homogeneous points (4, V), as (10, V)."""
     result: F64 = X_h[MONO_A] * X_h[MONO_B]
@@ -61,13 +70,21 @@ def quadric_coefficients(P_e: F64, P_g: F64) -> F64:
         P_e: (k, 3, 4) estimate projection matrices ``K [R_e | t_e]``.
         P_g: (k, 3, 4) GT(-symmetry) projection matrices.
     """
-    gram = np.empty((P_e.shape[0], 3, 4, 4))
-    we, wg = P_e[:, 2, None, :], P_g[:, 2, None, :]
-    # G_r[a, b]: the coefficient of x_a x_b before symmetrising (r = u, v, w).
-    for r in range(2):
-        gram[:, r] = P_e[:, r, :, None] * wg - P_g[:, r, :, None] * we
-    gram[:, 2] = P_e[:, 2, :, None] * wg
-    result: F64 = (gram[:, :, MONO_A, MONO_B] + gram[:, :, MONO_B, MONO_A]) * _MONO_HALF_W
+    # Poses on the last axis: long inner loops (the (4, 4) products per pose are too short to
+    # vectorise). np.take keeps each gathered array C-ordered.
+    pe = np.ascontiguousarray(P_e.transpose(1, 2, 0))  # (3, 4, k)
+    pg = np.ascontiguousarray(P_g.transpose(1, 2, 0))
+    e_a, e_b = np.take(pe, MONO_A, axis=1), np.take(pe, MONO_B, axis=1)  # (3, 10, k)
+    g_a, g_b = np.take(pg[:2], MONO_A, axis=1), np.take(pg[:2], MONO_B, axis=1)
+    # G_r[a, b] = e_ra w_gb − g_ra w_eb (r = u, v), e_wa w_gb (r = w); coefficient of x_a x_b:
+    # G_r[a, b] + G_r[b, a] (a < b), G_r[a, a]
+    out = np.multiply(e_a, pg[2, MONO_B])
+    out[:2] -= g_a * pe[2, MONO_B]
+    g_ba = np.multiply(e_b, pg[2, MONO_A])
+    g_ba[:2] -= g_b * pe[2, MONO_A]
+    out += g_ba
+    out *= _MONO_HALF_W[:, None]
+    result: F64 = np.ascontiguousarray(out.transpose(2, 0, 1))
     return result
 
 
@@ -98,7 +115,7 @@ def screen_bounds(q: F64, t_raw: F64, mono_max: F64) -> tuple[F64, F64, B]:
         ``(a, b, ok)``: (k,) each; ``ok`` false where float32 must not be used (terms near
         its range, a bound too loose to be useful, or non-finite input).
     """
-    sizes = np.abs(q) @ mono_max  # (k, 3) sizes of the cancelled terms
+    sizes = shared_matmul(np.abs(q), mono_max)  # (k, 3) sizes of the cancelled terms
     # 16u where 12u (coefficient, monomial, product, 10-term sum) suffices: the margin, ≥ 4u
     # since |N_w| ≥ 1 makes sizes[:, 2] ≥ 1, also covers |N_w| ≥ 1 holding only to ~1e-8
     # (the bound w_min in float64, the symmetry family's fit).
