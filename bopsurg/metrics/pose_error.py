@@ -323,9 +323,9 @@ def adi(
     slack = 1e-12 * (rho + np.linalg.norm(pairs.t_est, axis=1) + np.linalg.norm(pairs.t_gt, axis=1))
     # Sliding-midpoint splits and larger leaves: 2x faster queries on thin curved models
     # (needles), the same on compact ones; the nearest neighbour is exact either way.
-    from bopsurg.metrics._kdtree import ckdtree_class as kd  # on first use: light registry
+    from scipy.spatial import cKDTree  # on first use: 'eval --help' lists metrics, light
 
-    tree = kd()(p, leafsize=64, balanced_tree=False, compact_nodes=False)
+    tree = cKDTree(p, leafsize=64, balanced_tree=False, compact_nodes=False)
     p_t = np.ascontiguousarray(p.T)
     out = np.empty(pairs.n)
     for sl in chunks(pairs.n, size):
