@@ -357,7 +357,7 @@ def adi(
             sq += d * d
         out[sl] = np.sqrt(sq).mean(axis=1)
         for r in np.flatnonzero(~ok_pose):  # not a rotation: the reference's per-pose tree
-            out[sl.start + r] = kd()(est[r].T).query(gt[r].T, k=1)[0].mean()
+            out[sl.start + r] = cKDTree(est[r].T).query(gt[r].T, k=1)[0].mean()
     return out
 
 

@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bopsurg.geometry import rotation_about_axis
-from bopsurg.metrics import max_distance, mspd, mssd, symmetry_transforms
+from bopsurg.metrics import adi, max_distance, mspd, mssd, symmetry_transforms
 from bopsurg.metrics import reference as ref
 from bopsurg.metrics.point_subsets import (
     extreme_point_order,
@@ -305,6 +305,8 @@ def test_family_and_generic_bounds_match_reference(info: dict[str, object]) -> N
         mspd(R_est, t_est, R_gt, t_gt, K_CAM, pts, syms),
         _ref("mspd", R_est, t_est, R_gt, t_gt, K_CAM, pts, syms),
     )
+    # ADD-S answers such estimates with the reference's own per-pose tree
+    assert_close(adi(R_est, t_est, R_gt, t_gt, pts), _ref("adi", R_est, t_est, R_gt, t_gt, pts))
 
 
 @pytest.mark.parametrize("model", ["box", "needle", "planar", "few"])
