@@ -179,10 +179,13 @@ class RefineStage:
         """The segmenter's masks of the ROIs (:meth:`NeedleRefiner.observe`), image by image
         of the batch; K (m, 3, 3) and ``index`` (m,) per ROI."""
 
-        def observe(images: np.ndarray) -> list[RoiMasks]:
+        images = np.unique(index)
+        order = [np.flatnonzero(index == b) for b in images]  # each image's ROIs, once
+
+        def observe(which: np.ndarray) -> list[RoiMasks]:
             out = []
-            for b in images.tolist():
-                rows = np.flatnonzero(index == b)
+            for j in which.tolist():
+                b, rows = int(images[j]), order[j]
                 sel = torch.as_tensor(rows, device=box_xywh.device)
                 m = self.refiner.observe(
                     image[b : b + 1], K[rows[0]], box_xywh[sel], R[rows], t[rows]
@@ -193,9 +196,8 @@ class RefineStage:
         # the images side by side, a thread each (the segmenter's small convolutions gain
         # less from a second intra-op thread than from a second image)
         with cpu_workers(image.device) as count:
-            groups = workers.split(np.unique(index), count)
+            groups = workers.split(np.arange(images.size), count)
             parts = [m for g in workers.run(observe, groups) for m in g]
-        order = [np.flatnonzero(index == b) for b in np.unique(index)]
         inv = np.argsort(np.concatenate(order), kind="stable")
         return RoiMasks(
             np.concatenate([m.prob for m in parts])[inv],
