@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import assume, example, given
 from hypothesis import strategies as st
 
 from bopsurg.metrics import max_distance, mspd, symmetry_transforms
@@ -28,8 +28,7 @@ def _forms(R_e, t_e, R_g, t_g, pts):  # type: ignore[no-untyped-def]
     raw = ps.raw_term_sizes(np.abs(P_e) @ x_abs, np.abs(P_g) @ x_abs) / w[:, None] ** 2
     verts = ps.ScreenVertices(X_h)
     a, b, ok = ps.screen_bounds(q, raw, verts.mono_max)
-    assert ok.all()
-    return q, a, b, verts
+    return q, a, b, verts, ok
 
 
 def _exact(q: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -59,6 +58,7 @@ def _model(kind: str, rng: np.random.Generator, v: int) -> np.ndarray:
     deg=st.sampled_from([0.0, 0.01, 3.0, 40.0]),
     near=st.booleans(),
 )
+@example(seed=97, kind="box", deg=40.0, near=False)  # a pair the screen refuses
 def test_bounds_hold_on_every_vertex(seed: int, kind: str, deg: float, near: bool) -> None:
     """``low`` ≤ the distance at the representative, ``up`` ≥ it on every member."""
     rng = np.random.default_rng(seed)
@@ -67,7 +67,10 @@ def test_bounds_hold_on_every_vertex(seed: int, kind: str, deg: float, near: boo
     if near:  # the nearest vertices a few mm in front of the camera
         t_g[:, 2] = 45.0
         t_e[:, 2] = 45.0 + rng.uniform(-1.0, 1.0, 6)
-    q, _, _, verts = _forms(R_e, t_e, R_g, t_g, pts)
+    q, _, _, verts, ok = _forms(R_e, t_e, R_g, t_g, pts)
+    # the clusters serve screenable pairs only (the others take the float64 path)
+    assume(ok.any())
+    q = q[ok]
     cl = vc.VertexClusters(pts, verts.mono32)
     low, up = vc.cluster_bounds(q, q.astype(np.float32), cl, 64)
     d = _exact(q, pts)
@@ -127,7 +130,8 @@ def test_clustered_band_holds_the_exact_maximiser(seed: int, kind: str, tie: boo
     if tie:
         R_e, R_g = np.repeat(np.eye(3)[None], 12, 0), np.repeat(np.eye(3)[None], 12, 0)
         t_e[:, :2] = t_g[:, :2] = 0.0
-    q, a, b, verts = _forms(R_e, t_e, R_g, t_g, pts)
+    q, a, b, verts, ok = _forms(R_e, t_e, R_g, t_g, pts)
+    assert ok.all()
     cl = vc.VertexClusters(pts, verts.mono32)
     q32 = q.astype(np.float32)
     bounds = vc.cluster_bounds(q, q32, cl, 64)
@@ -146,7 +150,8 @@ def test_capped_pairs_skip_the_other_clusters() -> None:
     rng = np.random.default_rng(8)
     pts = box_model(rng, 1024)
     R_e, t_e, R_g, t_g = pose_pairs(rng, 4, deg=3.0, mm=3.0)
-    q, a, b, verts = _forms(R_e, t_e, R_g, t_g, pts)
+    q, a, b, verts, ok = _forms(R_e, t_e, R_g, t_g, pts)
+    assert ok.all()
     cl = vc.VertexClusters(pts, verts.mono32)
     q32 = q.astype(np.float32)
     bounds = vc.cluster_bounds(q, q32, cl, 64)
