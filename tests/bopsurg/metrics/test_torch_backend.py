@@ -36,8 +36,37 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy()
 
 
+@pytest.fixture(params=["matmul", "broadcast"])
+def products(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Runs a test with the CPU's own small matrix products and with the broadcast sums that
+    CUDA uses, so that the GPU's formulation is tested on the CPU too."""
+    if request.param == "broadcast":
+        monkeypatch.setattr(tb, "BROADCAST_PRODUCTS", frozenset({"cpu", "cuda"}))
+    return str(request.param)
+
+
+@pytest.mark.parametrize(
+    "shapes",
+    [
+        ((5, 3, 3), (5, 3, 3)),
+        ((5, 3, 3), (1, 3, 1)),
+        ((4, 1, 3, 3), (1, 7, 3, 1)),
+        ((6, 6, 4), (6, 4, 1)),
+    ],
+)
+def test_broadcast_products_equal_matmul(shapes: tuple[tuple[int, ...], ...]) -> None:
+    g = torch.Generator().manual_seed(0)
+    a, b = (torch.randn(s, generator=g, dtype=torch.float64) for s in shapes)
+    want = a @ b
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(tb, "BROADCAST_PRODUCTS", frozenset({"cpu"}))
+        got = tb._mm(a, b)
+    assert got.shape == want.shape
+    torch.testing.assert_close(got, want, rtol=1e-14, atol=1e-14)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
-def test_cpu_torch_equals_numpy(seed: int) -> None:
+def test_cpu_torch_equals_numpy(seed: int, products: str) -> None:
     pairs, pts, syms = _data(seed)
     R_est, t_est, R_gt, t_gt = pairs
     assert_close(_np(tb.mssd_torch(*pairs, pts, syms, device="cpu")), mssd(*pairs, pts, syms))
@@ -61,7 +90,7 @@ def test_torch_inputs_float64_default_and_float32_option() -> None:
     np.testing.assert_allclose(_np(f32), mspd(*pairs, K_CAM, pts, syms), rtol=1e-3, atol=1e-3)
 
 
-def test_small_chunks_and_broadcasting(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_small_chunks_and_broadcasting(monkeypatch: pytest.MonkeyPatch, products: str) -> None:
     monkeypatch.setattr(tb, "CPU_BUDGET", 5000)  # forces many pose and symmetry chunks
     (R_est, t_est, R_gt, t_gt), pts, syms = _data(3)
     got = tb.mssd_torch(R_est, t_est, R_gt[0], t_gt[0], pts, syms, device="cpu")
@@ -70,7 +99,7 @@ def test_small_chunks_and_broadcasting(monkeypatch: pytest.MonkeyPatch) -> None:
     assert_close(_np(got), mspd(R_est, t_est, R_gt[0], t_gt[0], K_CAM, pts, syms))
 
 
-def test_nan_rule_matches_numpy_and_reference() -> None:
+def test_nan_rule_matches_numpy_and_reference(products: str) -> None:
     pts = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [0.0, 30.0, 5.0], [-20.0, 5.0, -5.0]])
     syms = symmetry_transforms(CONT_Z, 0.5)
     args = (np.eye(3), np.array([1.0, 2.0, 0.0]), np.eye(3), np.zeros(3), K_CAM, pts)
@@ -111,7 +140,7 @@ def test_cuda_equals_numpy() -> None:
 
 
 @pytest.mark.parametrize("model", ["box", "arc"])
-def test_bop_symmetry_set_prunes_to_the_numpy_values(model: str) -> None:
+def test_bop_symmetry_set_prunes_to_the_numpy_values(model: str, products: str) -> None:
     """315 symmetries and more vertices than the second bound: every stage of the search runs
     (bounds, refinement, full evaluations of the survivors), values as the numpy path."""
     rng = np.random.default_rng(7)
@@ -124,7 +153,7 @@ def test_bop_symmetry_set_prunes_to_the_numpy_values(model: str) -> None:
     )
 
 
-def test_off_centre_model_keeps_float64_accuracy() -> None:
+def test_off_centre_model_keeps_float64_accuracy(products: str) -> None:
     """A model far from its origin: the squared-distance products are taken about the
     vertices' centre, so the search stays exact (the value is recomputed directly anyway)."""
     rng = np.random.default_rng(8)
@@ -135,7 +164,7 @@ def test_off_centre_model_keeps_float64_accuracy() -> None:
     assert_close(_np(got), mssd(R_est, t_est, R_gt, t_gt, pts, syms))
 
 
-def test_float32_bulk_work_returns_near_float64_values() -> None:
+def test_float32_bulk_work_returns_near_float64_values(products: str) -> None:
     pairs, pts, syms = _data(5, n=30)
     got = tb.mssd_torch(*pairs, pts, syms, device="cpu", dtype=torch.float32)
     assert got.dtype == torch.float32
