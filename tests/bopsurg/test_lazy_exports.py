@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -40,3 +41,22 @@ def test_the_light_imports_load_no_numpy():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("package", ["bopsurg.bop", "bopsurg.metrics"])
+def test_the_three_lists_of_exports_agree(package):
+    """``__all__``, the lazy homes and the ``TYPE_CHECKING`` imports (what mypy and editors
+    see) name the same objects in the same modules: an export added to one list only fails."""
+    import ast
+
+    pkg = importlib.import_module(package)
+    tree = ast.parse(Path(pkg.__file__).read_text(encoding="utf-8"))
+    typed: dict[str, str] = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
+            for imp in node.body:
+                assert isinstance(imp, ast.ImportFrom)
+                for alias in imp.names:
+                    typed[alias.asname or alias.name] = imp.module.removeprefix(package)
+    assert sorted(pkg.__all__) == sorted(pkg._HOME) == sorted(typed)
+    assert typed == pkg._HOME
