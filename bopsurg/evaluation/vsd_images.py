@@ -10,7 +10,8 @@ image renders (decoding releases the GIL).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,6 +86,43 @@ class VsdJob:
     def n_pairs(self) -> int:
         """P."""
         return int(self.obj_id.shape[0])
+
+
+class ImageClaims:
+    """A job's images shared out between two processes without a lock.
+
+    One process takes images from the front, the other from the back, each by creating the
+    image's file in a common folder: ``O_EXCL`` lets exactly one creation succeed. Each stops
+    at the first image the other has taken, so every image is taken exactly once, and the
+    faster process takes more (the VSD worker, busy from the start, and the caller, free only
+    once the rest of the evaluation is done).
+    """
+
+    def __init__(self, folder: str | os.PathLike[str], n_images: int) -> None:
+        self.folder = Path(folder)
+        self.n_images = n_images
+
+    def _take(self, index: int) -> bool:
+        try:
+            fd = os.open(self.folder / str(index), os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            return False
+        os.close(fd)
+        return True
+
+    def from_front(self) -> Iterator[int]:
+        """Image indices 0, 1, ... until one is taken already."""
+        for i in range(self.n_images):
+            if not self._take(i):
+                return
+            yield i
+
+    def from_back(self) -> Iterator[int]:
+        """Image indices n − 1, n − 2, ... until one is taken already."""
+        for i in reversed(range(self.n_images)):
+            if not self._take(i):
+                return
+            yield i
 
 
 def window_renderer(renderer: DepthRenderer) -> WindowRenderer:

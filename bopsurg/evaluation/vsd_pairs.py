@@ -9,7 +9,9 @@ that starting VSD waits for nothing else.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Sequence
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +26,7 @@ from bopsurg.errors import DatasetError
 from bopsurg.evaluation.bop19_pairs import KeptPairs, kept_pairs_of_targets
 from bopsurg.evaluation.pair_errors import ModelCache
 from bopsurg.evaluation.tables import GtTable, load_gt_table
-from bopsurg.evaluation.vsd_images import VsdImage, VsdJob, window_renderer
+from bopsurg.evaluation.vsd_images import ImageClaims, VsdImage, VsdJob, window_renderer
 from bopsurg.evaluation.vsd_images import vsd_errors as job_vsd_errors
 from bopsurg.evaluation.vsd_worker import VsdWorker, VsdWorkerError
 from bopsurg.plugins import DepthRenderer
@@ -119,28 +121,72 @@ def vsd_job(
 
 class PendingVsd:
     """VSD errors of a job being computed by the VSD worker process, or computed in this
-    process when asked for (no worker, or the worker failed)."""
+    process when asked for (no worker, or the worker failed).
+
+    With a worker, the images are shared out
+    (:class:`~bopsurg.evaluation.vsd_images.ImageClaims`): the worker takes them from the
+    front from the start; this process, once it asks for the errors, renders from the back
+    until the two meet rather than wait. Every image's errors are the same whoever renders
+    it. With a progress bar the worker renders them all (one bar over all images).
+    """
 
     def __init__(self, job: VsdJob, inputs: VsdInputs) -> None:
         self._job = job
         self._inputs = inputs
         self._worker = inputs.worker
+        self._claims: str | None = None
         if self._worker is not None:
-            self._worker.submit(job, progress=inputs.progress)
+            if not inputs.progress and len(job.images) > 1:
+                self._claims = tempfile.mkdtemp(prefix="bopsurg-vsd-")
+            self._worker.submit(job, progress=inputs.progress, claims=self._claims)
 
     def result(self) -> F64:
         """(τ, P) VSD errors, 1 where the bounding-sphere projections do not overlap."""
         if self._worker is not None:
             worker, self._worker = self._worker, None
+            claims, self._claims = self._claims, None
             try:
-                return worker.result()
+                return self._shared(worker, claims)
             except VsdWorkerError as err:
                 log.debug("%s; computing VSD in this process", err)
+            finally:
+                if claims is not None:
+                    shutil.rmtree(claims, ignore_errors=True)
         # no bar object without a bar: tqdm's lock would import multiprocessing
         images: Iterable[VsdImage] = self._job.images
         if self._inputs.progress:
             images = tqdm(self._job.images, desc="VSD", unit="img")
         return job_vsd_errors(self._job, window_renderer(self._inputs.renderer), images)
+
+    def _shared(self, worker: VsdWorker, claims: str | None) -> F64:
+        """The worker's errors, and this process's of the images it takes from the back."""
+        if claims is None:
+            return worker.result()
+        job = self._job
+        taken: list[int] = []
+
+        def from_back() -> Iterator[VsdImage]:
+            for i in ImageClaims(claims, len(job.images)).from_back():
+                taken.append(i)
+                yield job.images[i]
+
+        render = window_renderer(self._inputs.renderer)
+        try:
+            here = job_vsd_errors(job, render, from_back())
+        except Exception as err:  # e.g. a bad depth image: raised again in image order below
+            worker.close()
+            raise VsdWorkerError(f"VSD failed here ({err})") from err
+        try:
+            errors = worker.result()
+        except VsdWorkerError as err:  # the images it did not take render here
+            log.debug("%s; computing the rest of VSD in this process", err)
+            mine = set(taken)
+            rest = [image for i, image in enumerate(job.images) if i not in mine]
+            errors = job_vsd_errors(job, render, rest)
+        for i in taken:
+            cols = job.images[i].pairs
+            errors[:, cols] = here[:, cols]
+        return errors
 
 
 def start_vsd(est: PoseEstimates, gt: GtTable, kept: KeptPairs, inputs: VsdInputs) -> PendingVsd:

@@ -91,12 +91,20 @@ class VsdWorker:
             return None
         return cls(proc, renderer_name)
 
-    def submit(self, job: VsdJob, *, progress: bool = False) -> None:
+    def submit(self, job: VsdJob, *, progress: bool = False, claims: str | None = None) -> None:
         """Send the job (once) without waiting for the worker to read it (it may still be
-        importing); its errors come back from :meth:`result`."""
+        importing); its errors come back from :meth:`result`.
+
+        Args:
+            job: The VSD to compute.
+            progress: Show a progress bar over the images (on the worker's stderr).
+            claims: A folder through which the caller shares the images out
+                (:class:`~bopsurg.evaluation.vsd_images.ImageClaims`): the worker takes them
+                from the front and computes only those; None: all of them.
+        """
         if self._sender is not None:
             raise VsdWorkerError("a VSD worker takes one job")
-        data = pickle.dumps((job, progress), protocol=pickle.HIGHEST_PROTOCOL)
+        data = pickle.dumps((job, progress, claims), protocol=pickle.HIGHEST_PROTOCOL)
         self._sender = threading.Thread(target=self._send, args=(data,), daemon=True)
         self._sender.start()
 
@@ -110,7 +118,8 @@ class VsdWorker:
             log.debug("VSD job not sent: %s", err)
 
     def result(self) -> F64:
-        """The job's VSD errors (τ × P).
+        """The job's VSD errors (τ × P); with claims, those of the images the worker took
+        (the other columns 1).
 
         Raises:
             VsdWorkerError: No job was submitted, or the worker failed or died.
@@ -220,21 +229,27 @@ def serve(renderer_name: str, target: str = "") -> None:
     os.close(devnull)
     while True:
         try:
-            job, progress = pickle.load(sys.stdin.buffer)
+            job, progress, claims = pickle.load(sys.stdin.buffer)
         except EOFError:
             return
-        reply = ("error", failure) if render is None else _answer(job, render, progress)
+        reply = ("error", failure) if render is None else _answer(job, render, progress, claims)
         pickle.dump(reply, replies, protocol=pickle.HIGHEST_PROTOCOL)
         replies.flush()
 
 
-def _answer(job: VsdJob, render: WindowRenderer, progress: bool) -> tuple[str, Any]:
-    """("ok", errors) or ("error", message) for one job."""
-    from bopsurg.evaluation.vsd_images import vsd_errors
+def _answer(
+    job: VsdJob, render: WindowRenderer, progress: bool, claims: str | None
+) -> tuple[str, Any]:
+    """("ok", errors) or ("error", message) for one job (with ``claims``: of the images the
+    worker takes from the front)."""
+    from bopsurg.evaluation.vsd_images import ImageClaims, vsd_errors
 
     try:
         images: Iterable[VsdImage] = job.images
-        if progress:
+        if claims is not None:
+            front = ImageClaims(claims, len(job.images)).from_front()
+            images = (job.images[i] for i in front)
+        elif progress:
             from tqdm import tqdm
 
             images = tqdm(job.images, desc="VSD", unit="img")

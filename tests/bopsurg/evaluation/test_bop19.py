@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -199,6 +201,63 @@ def test_vsd_errors_equal_whole_image_vsd_of_every_pair(tmp_path):
     assert np.any((want > 0) & (want < 1))  # partial errors: the windows are exercised
     for errors in got:
         np.testing.assert_array_equal(errors, want)
+
+
+class _FrontWorker:
+    """A VSD worker stand-in that has taken the first ``k`` images (their claim files exist)
+    and answers their errors: the split with this process is then known in advance."""
+
+    def __init__(self, inputs: VsdInputs, k: int, fail: bool = False) -> None:
+        self.inputs, self.k, self.fail = inputs, k, fail
+        self.claims: str | None = None
+
+    def submit(self, job, *, progress: bool = False, claims: str | None = None) -> None:
+        from pathlib import Path
+
+        assert claims is not None  # no progress bar: the images are shared out
+        self.job, self.claims = job, claims
+        for i in range(self.k):
+            (Path(claims) / str(i)).touch()
+
+    def result(self):
+        from bopsurg.evaluation.vsd_images import vsd_errors as job_errors
+        from bopsurg.evaluation.vsd_images import window_renderer
+        from bopsurg.evaluation.vsd_worker import VsdWorkerError
+
+        if self.fail:
+            raise VsdWorkerError("died")
+        render = window_renderer(self.inputs.renderer)
+        return job_errors(self.job, render, self.job.images[: self.k])
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize(("k", "fail"), [(0, False), (1, False), (2, False), (1, True)])
+def test_vsd_shared_with_the_worker_equals_vsd_here(tmp_path, k, fail):
+    """The worker's images and those this process takes from the back make up the errors of
+    VSD computed here alone, bit for bit, whatever the split; a worker that fails after
+    the split leaves its images to this process."""
+    pytest.importorskip("pybullet")
+    from bopsurg.bop.results import load_results
+    from bopsurg.evaluation.pair_errors import ModelCache
+    from bopsurg.evaluation.tables import load_gt_table
+
+    ex, ds, renderer = _dataset_with_depth(tmp_path)
+    est = load_results(ex.results)
+    gt = load_gt_table(ds)
+    pairs = kept_pairs(est, gt, TargetTable.of(ds.targets()))
+    e_idx, g_idx = pairs.est_index, pairs.gt_index
+    diam = ModelCache(ds, 0.01).diameters(gt.obj_id[g_idx])
+    want = vsd_errors(est, gt, e_idx, g_idx, diam, VsdInputs(ds, renderer))
+    inputs = VsdInputs(ds, renderer)
+    fake = _FrontWorker(inputs, k, fail)
+    shared = VsdInputs(ds, renderer, worker=fake)  # type: ignore[arg-type]
+    got = vsd_errors(est, gt, e_idx, g_idx, diam, shared)
+    np.testing.assert_array_equal(got, want)
+    assert fake.claims is not None
+    assert len(fake.job.images) >= 3  # k = 2 leaves this process one image
+    assert not os.path.exists(fake.claims)  # the claim folder is removed
 
 
 def test_cli_eval_with_its_vsd_worker_equals_evaluate_in_this_process(tmp_path, monkeypatch):

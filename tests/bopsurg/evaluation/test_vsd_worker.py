@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bopsurg.evaluation.vsd_images import VSD_TAUS, VsdJob
+from bopsurg.evaluation.vsd_images import VSD_TAUS, ImageClaims, VsdJob
 from bopsurg.evaluation.vsd_pairs import PendingVsd, VsdInputs
 from bopsurg.evaluation.vsd_worker import VsdWorker, VsdWorkerError
 
@@ -55,3 +55,24 @@ def test_close_before_a_result_ends_the_worker():
     worker.close()
     assert worker._proc.returncode is not None
     worker.close()  # idempotent
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_claims_give_every_image_to_exactly_one_side(tmp_path, seed):
+    """Front and back taken in any interleaving: each image once, front then back."""
+    n = 9
+    front = ImageClaims(tmp_path, n).from_front()
+    back = ImageClaims(tmp_path, n).from_back()
+    got: dict[str, list[int]] = {"front": [], "back": []}
+    rng = np.random.default_rng(seed)
+    sides = {"front": front, "back": back}
+    while sides:
+        name = str(rng.choice(sorted(sides)))
+        i = next(sides[name], None)
+        if i is None:
+            del sides[name]
+        else:
+            got[name].append(i)
+    k = len(got["front"])
+    assert got["front"] == list(range(k))
+    assert got["back"] == list(range(n - 1, k - 1, -1))
