@@ -33,8 +33,9 @@ import logging
 import os
 import tempfile
 import weakref
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -283,6 +284,13 @@ class LruCache(Generic[T]):
 
 #: The fixed layout of a sample in a :class:`SlotCache`: the shape and dtype of each array.
 Layout = tuple[tuple[tuple[int, ...], np.dtype[Any]], ...]
+#: Batches read ahead from a complete shared cache (:class:`BatchReader`).
+CACHED_AHEAD = 3
+#: The torch dtype of each numpy dtype a layout may hold.
+_TORCH_DTYPES = {
+    np.dtype(np.uint8): torch.uint8, np.dtype(np.bool_): torch.bool,
+    np.dtype(np.float16): torch.float16, np.dtype(np.float32): torch.float32,
+}  # fmt: skip
 
 
 def _shared_dir(nbytes: int) -> tuple[str, int]:
@@ -324,7 +332,7 @@ class SlotCache:
     def __init__(
         self, n: int, layout: Layout, max_bytes: int, max_items: int | None = None
     ) -> None:
-        self.layout = layout
+        self.layout, self.n = layout, n
         self.sizes = [int(np.prod(shape)) * dt.itemsize for shape, dt in layout]
         self.slot = sum(self.sizes)
         count = min(n, max_bytes // max(1, self.slot), n if max_items is None else max_items)
@@ -373,6 +381,46 @@ class SlotCache:
         mm[base : base + self.slot] = np.concatenate([a.reshape(-1).view(np.uint8) for a in arrays])
         mm[flags + i] = 1
         return value
+
+    def complete(self) -> bool:
+        """Every sample of the set is in the mapping (:meth:`read_batch` can read any batch)."""
+        return self.capacity == self.n and len(self) == self.n
+
+    def read_batch(self, idx: Sequence[int], pin: bool = False) -> tuple[torch.Tensor, ...]:
+        """Samples ``idx``, stacked: one tensor (B, *shape) per array of the layout, each
+        gathered straight from the mapping into its own (page-locked: ``pin``) memory, so a
+        batch costs one copy of its bytes (no per-sample tensors, no collation).
+
+        Raises:
+            KeyError: A sample is not in the mapping (see :meth:`complete`).
+        """
+        ix = np.asarray(idx, dtype=np.int64)
+        mm = self._mapping()
+        flags = mm[self.capacity * self.slot :]
+        if ix.size and (ix.min() < 0 or ix.max() >= self.capacity or not flags[ix].all()):
+            raise KeyError("samples not in the shared cache")
+        rows = mm[: self.capacity * self.slot].reshape(self.capacity, self.slot)
+        out, at = [], 0
+        for (shape, dt), size in zip(self.layout, self.sizes, strict=True):
+            t = torch.empty((ix.size, *shape), dtype=_TORCH_DTYPES[dt], pin_memory=pin)
+            dest = t.numpy().view(np.uint8).reshape(ix.size, size)
+            np.take(rows[:, at : at + size], ix, axis=0, out=dest)  # releases the GIL
+            out.append(t)
+            at += size
+        return tuple(out)
+
+    def to_device(self, device: torch.device, chunk: int = 256) -> tuple[torch.Tensor, ...]:
+        """The whole cache (it must be :meth:`complete`) as tensors (capacity, *shape) on
+        ``device``, one per array of the layout, copied ``chunk`` samples at a time."""
+        out = tuple(
+            torch.empty((self.capacity, *shape), dtype=_TORCH_DTYPES[dt], device=device)
+            for shape, dt in self.layout
+        )
+        for a in range(0, self.capacity, chunk):
+            part = self.read_batch(range(a, min(self.capacity, a + chunk)))
+            for dest, src in zip(out, part, strict=True):
+                dest[a : a + src.shape[0]].copy_(src)
+        return out
 
     def _unpack(self, raw: np.ndarray) -> Any:
         out, at = [], 0
@@ -454,6 +502,14 @@ class BatchReader(Generic[T]):
     child can inherit a lock held by one of OpenCV's or torch's threads and hang for good.
     Reading draws no random number, so the batches do not depend on ``num_workers``.
 
+    Once a dataset's shared cache (a :class:`SlotCache`, its ``cache``) holds every sample
+    (after the first epoch, when it is large enough), the batches are read from it here
+    instead: no worker decodes, copies or sends a sample again, and the batches are the same
+    (the dataset's ``batch_from`` makes them). On a GPU with room for it (a quarter of its
+    free memory) the whole cache is copied there once, and a batch is a gather on the
+    device; otherwise each batch is gathered from the mapping by threads a few batches
+    ahead, into page-locked memory when ``pin_memory``.
+
     Args:
         data: A map-style dataset (``data[i]`` reads sample i from disk).
         collate: Stacks the samples of one batch: ``(samples, indices) -> batch``.
@@ -461,6 +517,7 @@ class BatchReader(Generic[T]):
         pin_memory: Batches come in page-locked memory (their ``pin_memory()``), so the
             copies to a GPU can overlap its work (``non_blocking=True``); with workers.
         prefetch: Batches each worker reads ahead.
+        device: The training device: a complete shared cache may be copied there.
     """
 
     def __init__(
@@ -470,8 +527,13 @@ class BatchReader(Generic[T]):
         num_workers: int = 0,
         pin_memory: bool = False,
         prefetch: int = 2,
+        device: torch.device | None = None,
     ) -> None:
         self.data, self.collate, self.num_workers = data, collate, num_workers
+        self.pin_memory, self.device = pin_memory, device
+        #: Epochs read from the shared cache by this process, and of those, on the device.
+        self.cached_epochs = self.resident_epochs = 0
+        self._resident: tuple[torch.Tensor, ...] | None = None
         self._order = _Order()
         self._loader: DataLoader[Any] | None = None
         if num_workers > 0:
@@ -485,10 +547,47 @@ class BatchReader(Generic[T]):
     def __call__(self, index_batches: Iterable[Sequence[int] | torch.Tensor]) -> Iterator[T]:
         """The batches of ``index_batches`` (index lists or tensors), in that order."""
         batches = [[int(i) for i in b] for b in index_batches]
+        cache = getattr(self.data, "cache", None)
+        if isinstance(cache, SlotCache) and cache.complete():
+            self.cached_epochs += 1
+            if self._on_device(cache):
+                self.resident_epochs += 1
+                return self._from_device(batches)
+            return self._from_cache(cache, batches)
         if self._loader is None:
             return (self.collate([self.data[i] for i in b], b) for b in batches)
         self._order.batches = batches
         return iter(self._loader)
+
+    def _on_device(self, cache: SlotCache) -> bool:
+        """Whether the cache is on the (CUDA) device, copying it there if it fits."""
+        dev = self.device
+        if self._resident is None and dev is not None and dev.type == "cuda":
+            free, _ = torch.cuda.mem_get_info(dev)
+            if cache.capacity * cache.slot <= free // 4:
+                self._resident = cache.to_device(dev)
+        return self._resident is not None
+
+    def _from_device(self, batches: list[list[int]]) -> Iterator[T]:
+        assert self._resident is not None
+        make = self.data.batch_from  # type: ignore[attr-defined]
+        for b in batches:
+            ix = torch.tensor(b, dtype=torch.int64).to(self._resident[0].device)
+            yield make(b, tuple(a.index_select(0, ix) for a in self._resident))
+
+    def _from_cache(self, cache: SlotCache, batches: list[list[int]]) -> Iterator[T]:
+        make = self.data.batch_from  # type: ignore[attr-defined]
+
+        def read(b: list[int]) -> T:  # the gathers release the GIL: threads run side by side
+            return make(b, cache.read_batch(b, self.pin_memory))  # type: ignore[no-any-return]
+
+        with ThreadPoolExecutor(max_workers=CACHED_AHEAD) as readers:
+            ahead = deque(readers.submit(read, b) for b in batches[:CACHED_AHEAD])
+            for k in range(len(batches)):
+                batch = ahead.popleft().result()
+                if k + CACHED_AHEAD < len(batches):
+                    ahead.append(readers.submit(read, batches[k + CACHED_AHEAD]))
+                yield batch
 
     def all(self, batch_size: int) -> Iterator[T]:
         """Every sample in index order, in batches of ``batch_size`` (validation)."""
@@ -587,6 +686,13 @@ class DetectionSet(Dataset[tuple[torch.Tensor, torch.Tensor]]):
             torch.tensor(idx, dtype=torch.int64),
             torch.stack([s[0] for s in samples]),
             [s[1] for s in samples],
+        )
+
+    def batch_from(self, idx: list[int], arrays: tuple[torch.Tensor, ...]) -> DetectionBatch:
+        """The batch of images ``idx`` stacked already (``arrays``: the images)."""
+        (images,) = arrays
+        return DetectionBatch(
+            torch.tensor(idx, dtype=torch.int64), images, [self.targets[i] for i in idx]
         )
 
 
@@ -773,12 +879,14 @@ class PoseSet(Dataset[PoseSample]):
 
     def collate(self, samples: list[PoseSample], idx: list[int]) -> PoseBatch:
         """Stack the samples of one batch with their poses and boxes."""
+        return self.batch_from(idx, tuple(torch.stack([s[k] for s in samples]) for k in range(3)))
+
+    def batch_from(self, idx: list[int], arrays: tuple[torch.Tensor, ...]) -> PoseBatch:
+        """The batch of samples ``idx`` whose arrays are stacked already (rgb, mask, xyz)."""
+        rgb, mask, xyz = arrays
         ix = torch.tensor(idx, dtype=torch.int64)
         return PoseBatch(
-            ix,
-            torch.stack([s[0] for s in samples]),
-            torch.stack([s[1] for s in samples]),
-            torch.stack([s[2] for s in samples]),
+            ix, rgb, mask, xyz,
             self.ctx[ix], self.K[ix], self.R[ix], self.t[ix], self.bbox[ix], self.image_hw[ix],
         )  # fmt: skip
 

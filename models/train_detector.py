@@ -188,7 +188,9 @@ def train_detector(
         step=_step_fn(model, recipe, dev, seed),
         validate=lambda ema: validate(cast(YoloxDetector, ema), val, dev),
         export=export, device=dev, progress=progress,
-        load=BatchReader(train, train.collate, loader.num_workers, dev.type == "cuda"),
+        load=BatchReader(
+            train, train.collate, loader.num_workers, dev.type == "cuda", device=dev
+        ),
     )  # fmt: skip
     return path
 

@@ -344,7 +344,9 @@ def train_pose(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,
         validate=lambda ema: validate(ema, val, cfg, geo, dev), export=export,
         device=dev, progress=progress,
-        load=BatchReader(train, train.collate, loader.num_workers, dev.type == "cuda"),
+        load=BatchReader(
+            train, train.collate, loader.num_workers, dev.type == "cuda", device=dev
+        ),
     )  # fmt: skip
     return path
 

@@ -319,3 +319,82 @@ def test_the_shared_cache_is_filled_once_for_every_process_and_keeps_to_its_budg
 
     gc.collect()
     assert not os.path.exists(path)
+
+
+def test_a_complete_shared_cache_reads_whole_batches_equal_to_the_samples():
+    """:meth:`SlotCache.read_batch` stacks exactly what :meth:`SlotCache.get` returns, in
+    the order asked, and refuses a batch with a sample not in the mapping."""
+    from bopsurg.models.data import SlotCache
+
+    layout = (
+        ((2, 3), np.dtype(np.uint8)),
+        ((3,), np.dtype(np.bool_)),
+        ((1, 3), np.dtype(np.float16)),
+    )
+    cache = SlotCache(4, layout, max_bytes=1 << 20)
+
+    def sample(i):
+        return (
+            torch.full((2, 3), 10 + i, dtype=torch.uint8),
+            torch.tensor([i % 2 == 0, True, i == 3]),
+            torch.arange(3).half().reshape(1, 3) * (i + 0.5),
+        )
+
+    for i in (0, 1, 2):
+        cache.get(i, lambda i=i: sample(i))
+    assert not cache.complete()
+    with pytest.raises(KeyError):
+        cache.read_batch([0, 3])
+    cache.get(3, lambda: sample(3))
+    assert cache.complete()
+    got = cache.read_batch([3, 0, 0, 2])
+    for k, array in enumerate(got):
+        want = torch.stack([sample(i)[k] for i in (3, 0, 0, 2)])
+        assert array.dtype == want.dtype
+        assert torch.equal(array, want)
+        assert array.is_contiguous()
+    whole = cache.to_device(torch.device("cpu"), chunk=3)  # what a GPU gets, in two chunks
+    for k, array in enumerate(whole):
+        assert torch.equal(array, torch.stack([sample(i)[k] for i in range(4)]))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_a_complete_cache_moves_to_the_gpu_and_gives_the_same_batches(split):
+    data = load_pose_set(split, split.scene_ids, 1, context=64, cache_mb=64.0, shared=True)
+    reader = BatchReader(data, data.collate, 0, device=torch.device("cuda"))
+    order = [torch.tensor([3, 1, 4]), torch.tensor([0, 5, 2])]
+    reference = list(reader(order))  # decoded sample by sample, filling the cache
+    list(reader([torch.arange(len(data))]))
+    resident = list(reader(order))
+    assert reader.resident_epochs == 1
+    for a, b in zip(reference, resident, strict=True):
+        assert b.rgb.is_cuda
+        for name in ("rgb", "mask", "xyz"):
+            assert torch.equal(getattr(a, name), getattr(b, name).cpu())
+
+
+@pytest.mark.parametrize("kind", ["detector", "pose"])
+def test_once_the_shared_cache_is_full_batches_come_from_it_unchanged(split, kind):
+    """The first pass fills the shared cache (through a worker); later passes read whole
+    batches from it in this process, and they equal the batches read sample by sample."""
+    big = {"cache_mb": 64.0, "shared": True}
+    if kind == "detector":
+        data = load_detection_set(split, split.scene_ids, (64, 96), [1], **big)
+    else:
+        data = load_pose_set(split, split.scene_ids, 1, context=64, **big)
+    order = [torch.tensor([3, 1, 4]), torch.tensor([0, 5, 2]), torch.tensor([7, 6])]
+    everything = [torch.arange(len(data))]
+    reference = list(BatchReader(data, data.collate, 0)(order))  # sample by sample
+    assert not data.cache.complete()
+    reader = BatchReader(data, data.collate, 1)
+    list(reader(everything))  # the worker decodes every sample into the shared cache
+    assert reader.cached_epochs == 0
+    assert data.cache.complete()
+    cached = list(reader(order))
+    assert reader.cached_epochs == 1
+    fields = ("idx", "images") if kind == "detector" else ("idx", "rgb", "mask", "xyz", "ctx", "R")
+    for a, b in zip(reference, cached, strict=True):
+        for name in fields:
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        if kind == "detector":
+            assert all(torch.equal(x, y) for x, y in zip(a.targets, b.targets, strict=True))
