@@ -338,6 +338,12 @@ class SlotCache:
         count = min(n, max_bytes // max(1, self.slot), n if max_items is None else max_items)
         folder, room = _shared_dir(count * (self.slot + 1))
         self.capacity = min(count, room // (self.slot + 1))
+        if 0 < self.capacity < n:
+            log.info(
+                "the shared cache holds %d of %d samples; about %d MiB would hold them all "
+                "(loader.cache_mb), and batches would then skip the loader workers",
+                self.capacity, n, -(-n * (self.slot + 1) // MIB),
+            )  # fmt: skip
         fd, name = tempfile.mkstemp(prefix="bopsurg-samples-", suffix=".bin", dir=folder)
         os.ftruncate(fd, self.capacity * (self.slot + 1))  # sparse: pages come as written
         own = f"/proc/{os.getpid()}/fd/{fd}"
@@ -550,7 +556,13 @@ class BatchReader(Generic[T]):
         cache = getattr(self.data, "cache", None)
         if isinstance(cache, SlotCache) and cache.complete():
             self.cached_epochs += 1
-            if self._on_device(cache):
+            on_device = self._on_device(cache)
+            if self.cached_epochs == 1:
+                log.debug(
+                    "every sample is in the shared cache: batches are read from it%s",
+                    f" on {self.device}" if on_device else "",
+                )
+            if on_device:
                 self.resident_epochs += 1
                 return self._from_device(batches)
             return self._from_cache(cache, batches)

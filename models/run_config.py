@@ -62,7 +62,10 @@ class LoaderConfig:
     process and each of the ``num_workers`` processes, so up to ``(num_workers + 1) *
     cache_mb`` in all), least recently used evicted first. A sample costs about 0.25 MB
     (detector, 320x256 input) or 0.65 MB (pose, 256-px context crop), so the default holds
-    about 6,000 pose instances: a set that fits is decoded once, a larger one streams.
+    about 6,000 pose instances: a set that fits is decoded once, a larger one streams. A
+    shared cache that holds the whole set is also read without the workers after the first
+    epoch (and on a GPU from a copy on the GPU); when it cannot hold the set, the log says
+    how large ``cache_mb`` would have to be.
 
     Attributes:
         num_workers: Background loader processes that read batches ahead (0: read in the
