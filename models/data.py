@@ -520,8 +520,9 @@ class BatchReader(Generic[T]):
         data: A map-style dataset (``data[i]`` reads sample i from disk).
         collate: Stacks the samples of one batch: ``(samples, indices) -> batch``.
         num_workers: Background loader processes.
-        pin_memory: Batches come in page-locked memory (their ``pin_memory()``), so the
-            copies to a GPU can overlap its work (``non_blocking=True``); with workers.
+        pin_memory: Batches come in page-locked memory (the workers' batches through their
+            ``pin_memory()``, those gathered from a complete cache directly), so the copies
+            to a GPU can overlap its work (``non_blocking=True``).
         prefetch: Batches each worker reads ahead.
         device: The training device: a complete shared cache may be copied there.
     """

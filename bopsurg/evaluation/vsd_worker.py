@@ -5,7 +5,9 @@ The caller starts the worker as early as it knows that VSD may run (:meth:`VsdWo
 this module imports no numpy, so ``bopsurg eval`` starts it before loading anything) and
 closes it if VSD does not run after all: the worker imports numpy and the renderer plugin
 while the caller imports the rest. The caller then submits one
-:class:`~bopsurg.evaluation.vsd_images.VsdJob` and collects the errors when it needs them.
+:class:`~bopsurg.evaluation.vsd_images.VsdJob` and collects the errors when it needs them;
+with a claims folder (:class:`~bopsurg.evaluation.vsd_images.ImageClaims`) the worker takes
+images from the front while the caller, once free, takes them from the back.
 Messages are pickled over the worker's own pipes (objects this program made, never a user's
 file). A worker that fails in any way raises :class:`VsdWorkerError` on collection, and the
 caller computes VSD itself: the errors, and any error message about the data, are then
