@@ -184,6 +184,21 @@ def run_bopsurg(args: argparse.Namespace, work: Path) -> tuple[float, float, dic
     return seconds, cpu, json.loads((out / "scores.json").read_text())
 
 
+def vsd_timeline(args: argparse.Namespace, work: Path) -> str:
+    """One more ``bopsurg -v eval``: its log line on how VSD's images were shared between the
+    worker and the main process (``PendingVsd``), with the wall time of that run."""
+    out = work / "bopsurg_eval_timeline"
+    shutil.rmtree(out, ignore_errors=True)
+    bopsurg = Path(sys.executable).parent / "bopsurg"
+    cmd = [str(bopsurg), "-v", "eval", str(args.data), str(args.results), "--out", str(out)]
+    t0 = time.perf_counter()
+    done = subprocess.run([*cmd, "--no-progress", *args.eval_args], check=True,
+                          capture_output=True, text=True)  # fmt: skip
+    seconds = time.perf_counter() - t0
+    lines = [x for x in done.stderr.splitlines() if "VSD:" in x] or ["(no VSD worker ran)"]
+    return f"{lines[-1].split('VSD:', 1)[-1].strip()}; the run took {seconds:.3f} s"
+
+
 def compare_with_reference(args: argparse.Namespace) -> dict[str, object]:
     """Time bopsurg eval (best of ``--repeats``) and the reference; print the comparison."""
     work = Path(args.out)
@@ -207,6 +222,9 @@ def compare_with_reference(args: argparse.Namespace) -> dict[str, object]:
     for k in AR_KEYS:
         ref_v = row.get("reference", {}).get(k) if args.toolkit else None  # type: ignore[union-attr]
         print(f"  {k:<28} bopsurg {ours.get(k)}   reference {ref_v}")
+    if args.timeline:
+        row["vsd_timeline"] = vsd_timeline(args, work)
+        print(f"VSD (one more run, -v): {row['vsd_timeline']}")
     return row
 
 
@@ -223,6 +241,11 @@ def main() -> None:
     ap.add_argument("--results", type=Path, help="its results CSV (with --data)")
     ap.add_argument("--toolkit", type=Path, help="thodan/bop_toolkit checkout (with --data)")
     ap.add_argument("--toolkit-python", default="python", help="Python that runs the toolkit")
+    ap.add_argument(
+        "--timeline", action="store_true",
+        help="with --data: one more run that prints how VSD's images were shared between its "
+        "worker and the main process, and how long the main process then waited",
+    )  # fmt: skip
     ap.add_argument("--repeats", type=int, default=3, help="bopsurg eval runs (the fastest counts)")
     ap.add_argument(
         "--eval-arg", dest="eval_args", action="append", default=[], help="extra eval argument"

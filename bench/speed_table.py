@@ -86,6 +86,7 @@ def main() -> None:
     size = ["--vertices", str(args.vertices), "--symmetries", str(args.symmetries)]
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)
+        notes: list[str] = []
         rows = metric_rows(bench("bench_metrics.py", ["--poses", str(args.poses), *size],
                                  t / "m.json"), args.symmetries)  # fmt: skip
         if args.device:
@@ -100,7 +101,7 @@ def main() -> None:
             "| |"
         )
         if args.data and args.results:
-            cmp_args = ["--data", args.data, "--results", args.results, "--out", tmp]
+            cmp_args = ["--data", args.data, "--results", args.results, "--out", tmp, "--timeline"]
             if args.toolkit:
                 cmp_args += ["--toolkit", args.toolkit, "--toolkit-python", args.toolkit_python]
             c = bench("bench_eval.py", cmp_args, t / "c.json")
@@ -111,11 +112,14 @@ def main() -> None:
                 f"{c['bopsurg_s']:.2f} s | "
                 f"{ref} | {ratio} |"
             )
+            notes.append(f"VSD of `bopsurg eval` with VSD: {c.get('vsd_timeline', '')}")
         if args.predict:
             rows += predict_rows(args.predict, args.batch_size, t / "p.json")
     print(f"Machine: {machine()}\n")
     print("| workload | bopsurg | reference | ratio |\n|---|---|---|---|")
     print("\n".join(rows))
+    for note in notes:
+        print(f"\n{note}")
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import shutil
 import tempfile
+import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -171,13 +172,20 @@ class PendingVsd:
                 yield job.images[i]
 
         render = window_renderer(self._inputs.renderer)
+        start = time.perf_counter()
         try:
             here = job_vsd_errors(job, render, from_back())
         except Exception as err:  # e.g. a bad depth image: raised again in image order below
             worker.close()
             raise VsdWorkerError(f"VSD failed here ({err})") from err
+        rendered = time.perf_counter()
         try:
             errors = worker.result()
+            log.debug(
+                "VSD: %d of %d images rendered here in %.3f s, the rest by the worker; "
+                "then %.3f s waiting for it", len(taken), len(job.images),
+                rendered - start, time.perf_counter() - rendered,
+            )  # fmt: skip
         except VsdWorkerError as err:  # the images it did not take render here
             log.debug("%s; computing the rest of VSD in this process", err)
             mine = set(taken)
