@@ -12,6 +12,7 @@ import logging
 import shutil
 import tempfile
 import time
+import weakref
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -139,6 +140,8 @@ class PendingVsd:
         if self._worker is not None:
             if not inputs.progress and len(job.images) > 1:
                 self._claims = tempfile.mkdtemp(prefix="bopsurg-vsd-")
+                # removed by result(), or with this object if the evaluation stops before
+                weakref.finalize(self, shutil.rmtree, self._claims, ignore_errors=True)
             self._worker.submit(job, progress=inputs.progress, claims=self._claims)
 
     def result(self) -> F64:
