@@ -167,35 +167,31 @@ def run_toolkit(args: argparse.Namespace, work: Path) -> tuple[float, dict[str, 
     return seconds, json.loads(out.read_text())
 
 
-def run_bopsurg(args: argparse.Namespace, work: Path) -> tuple[float, float, dict[str, float]]:
-    """``bopsurg eval`` with its defaults in a fresh process: (wall s, CPU s, scores). CPU is
-    user + system time of the command and of the processes it waited for (VSD's worker)."""
+def run_bopsurg(
+    args: argparse.Namespace, work: Path, verbose: bool = False
+) -> tuple[float, float, dict[str, float], str]:
+    """``bopsurg eval`` with its defaults in a fresh process: (wall s, CPU s, scores, its
+    stderr; ``verbose``: with ``-v``, debug messages included). CPU is user + system time of
+    the command and of the processes it waited for (VSD's worker)."""
     out = work / "bopsurg_eval"
     shutil.rmtree(out, ignore_errors=True)
     bopsurg = Path(sys.executable).parent / "bopsurg"
-    cmd = [str(bopsurg), "eval", str(args.data), str(args.results), "--out", str(out)]
-    cmd += ["--no-progress", *args.eval_args]
+    cmd = [str(bopsurg), *(["-v"] if verbose else []), "eval", str(args.data), str(args.results)]
+    cmd += ["--out", str(out), "--no-progress", *args.eval_args]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, capture_output=True)
+    done = subprocess.run(cmd, check=True, capture_output=True, text=True)
     seconds = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return seconds, cpu, json.loads((out / "scores.json").read_text())
+    return seconds, cpu, json.loads((out / "scores.json").read_text()), done.stderr
 
 
 def vsd_timeline(args: argparse.Namespace, work: Path) -> str:
     """One more ``bopsurg -v eval``: its log line on how VSD's images were shared between the
     worker and the main process (``PendingVsd``), with the wall time of that run."""
-    out = work / "bopsurg_eval_timeline"
-    shutil.rmtree(out, ignore_errors=True)
-    bopsurg = Path(sys.executable).parent / "bopsurg"
-    cmd = [str(bopsurg), "-v", "eval", str(args.data), str(args.results), "--out", str(out)]
-    t0 = time.perf_counter()
-    done = subprocess.run([*cmd, "--no-progress", *args.eval_args], check=True,
-                          capture_output=True, text=True)  # fmt: skip
-    seconds = time.perf_counter() - t0
-    lines = [x for x in done.stderr.splitlines() if "VSD:" in x] or ["(no VSD worker ran)"]
+    seconds, _, _, stderr = run_bopsurg(args, work, verbose=True)
+    lines = [x for x in stderr.splitlines() if "VSD:" in x] or ["(no VSD worker ran)"]
     return f"{lines[-1].split('VSD:', 1)[-1].strip()}; the run took {seconds:.3f} s"
 
 
@@ -203,7 +199,7 @@ def compare_with_reference(args: argparse.Namespace) -> dict[str, object]:
     """Time bopsurg eval (best of ``--repeats``) and the reference; print the comparison."""
     work = Path(args.out)
     runs = [run_bopsurg(args, work) for _ in range(args.repeats)]
-    t_ours, _, ours = min(runs, key=lambda r: r[0])
+    t_ours, _, ours, _ = min(runs, key=lambda r: r[0])
     cpu = sorted(r[1] for r in runs)[len(runs) // 2]
     print(f"bopsurg eval: {t_ours:.2f} s (best of {args.repeats}; all: "
           f"{', '.join(f'{r[0]:.2f}' for r in runs)}); "

@@ -86,7 +86,7 @@ def main() -> None:
     size = ["--vertices", str(args.vertices), "--symmetries", str(args.symmetries)]
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)
-        notes: list[str] = []
+        timeline = ""
         rows = metric_rows(bench("bench_metrics.py", ["--poses", str(args.poses), *size],
                                  t / "m.json"), args.symmetries)  # fmt: skip
         if args.device:
@@ -112,14 +112,14 @@ def main() -> None:
                 f"{c['bopsurg_s']:.2f} s | "
                 f"{ref} | {ratio} |"
             )
-            notes.append(f"VSD of `bopsurg eval` with VSD: {c.get('vsd_timeline', '')}")
+            timeline = f"VSD of `bopsurg eval` with VSD: {c.get('vsd_timeline', '')}"
         if args.predict:
             rows += predict_rows(args.predict, args.batch_size, t / "p.json")
     print(f"Machine: {machine()}\n")
     print("| workload | bopsurg | reference | ratio |\n|---|---|---|---|")
     print("\n".join(rows))
-    for note in notes:
-        print(f"\n{note}")
+    if timeline:
+        print(f"\n{timeline}")
 
 
 if __name__ == "__main__":
