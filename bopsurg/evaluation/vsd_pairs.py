@@ -15,6 +15,7 @@ import time
 import weakref
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -137,25 +138,27 @@ class PendingVsd:
         self._inputs = inputs
         self._worker = inputs.worker
         self._claims: str | None = None
+        self._remove_claims: weakref.finalize[Any, Any] | None = None
         if self._worker is not None:
             if not inputs.progress and len(job.images) > 1:
                 self._claims = tempfile.mkdtemp(prefix="bopsurg-vsd-")
-                # removed by result(), or with this object if the evaluation stops before
-                weakref.finalize(self, shutil.rmtree, self._claims, ignore_errors=True)
+                # called by result(), or with this object if the evaluation stops before
+                self._remove_claims = weakref.finalize(
+                    self, shutil.rmtree, self._claims, ignore_errors=True
+                )
             self._worker.submit(job, progress=inputs.progress, claims=self._claims)
 
     def result(self) -> F64:
         """(τ, P) VSD errors, 1 where the bounding-sphere projections do not overlap."""
         if self._worker is not None:
             worker, self._worker = self._worker, None
-            claims, self._claims = self._claims, None
             try:
-                return self._shared(worker, claims)
+                return self._shared(worker, self._claims)
             except VsdWorkerError as err:
                 log.debug("%s; computing VSD in this process", err)
             finally:
-                if claims is not None:
-                    shutil.rmtree(claims, ignore_errors=True)
+                if self._remove_claims is not None:
+                    self._remove_claims()
         # no bar object without a bar: tqdm's lock would import multiprocessing
         images: Iterable[VsdImage] = self._job.images
         if self._inputs.progress:
@@ -194,8 +197,8 @@ class PendingVsd:
             mine = set(taken)
             rest = [image for i, image in enumerate(job.images) if i not in mine]
             errors = job_vsd_errors(job, render, rest)
-        for i in taken:
-            cols = job.images[i].pairs
+        if taken:
+            cols = np.concatenate([job.images[i].pairs for i in taken])
             errors[:, cols] = here[:, cols]
         return errors
 
