@@ -286,11 +286,6 @@ class LruCache(Generic[T]):
 Layout = tuple[tuple[tuple[int, ...], np.dtype[Any]], ...]
 #: Batches read ahead from a complete shared cache (:class:`BatchReader`).
 CACHED_AHEAD = 3
-#: The torch dtype of each numpy dtype a layout may hold.
-_TORCH_DTYPES = {
-    np.dtype(np.uint8): torch.uint8, np.dtype(np.bool_): torch.bool,
-    np.dtype(np.float16): torch.float16, np.dtype(np.float32): torch.float32,
-}  # fmt: skip
 
 
 def _shared_dir(nbytes: int) -> tuple[str, int]:
@@ -333,8 +328,14 @@ class SlotCache:
         self, n: int, layout: Layout, max_bytes: int, max_items: int | None = None
     ) -> None:
         self.layout, self.n = layout, n
-        self.sizes = [int(np.prod(shape)) * dt.itemsize for shape, dt in layout]
-        self.slot = sum(self.sizes)
+        sizes = [int(np.prod(shape)) * dt.itemsize for shape, dt in layout]
+        self.slot = sum(sizes)
+        starts = np.cumsum([0, *sizes[:-1]]).tolist()
+        #: (shape, torch dtype, first byte, bytes) of each array of a sample in its slot.
+        self.fields = [
+            (shape, torch.from_numpy(np.empty(0, dt)).dtype, at, size)
+            for (shape, dt), at, size in zip(layout, starts, sizes, strict=True)
+        ]
         count = min(n, max_bytes // max(1, self.slot), n if max_items is None else max_items)
         folder, room = _shared_dir(count * (self.slot + 1))
         self.capacity = min(count, room // (self.slot + 1))
@@ -406,21 +407,20 @@ class SlotCache:
         if ix.size and (ix.min() < 0 or ix.max() >= self.capacity or not flags[ix].all()):
             raise KeyError("samples not in the shared cache")
         rows = mm[: self.capacity * self.slot].reshape(self.capacity, self.slot)
-        out, at = [], 0
-        for (shape, dt), size in zip(self.layout, self.sizes, strict=True):
-            t = torch.empty((ix.size, *shape), dtype=_TORCH_DTYPES[dt], pin_memory=pin)
+        out = []
+        for shape, dtype, at, size in self.fields:
+            t = torch.empty((ix.size, *shape), dtype=dtype, pin_memory=pin)
             dest = t.numpy().view(np.uint8).reshape(ix.size, size)
             np.take(rows[:, at : at + size], ix, axis=0, out=dest)  # releases the GIL
             out.append(t)
-            at += size
         return tuple(out)
 
     def to_device(self, device: torch.device, chunk: int = 256) -> tuple[torch.Tensor, ...]:
         """The whole cache (it must be :meth:`complete`) as tensors (capacity, *shape) on
         ``device``, one per array of the layout, copied ``chunk`` samples at a time."""
         out = tuple(
-            torch.empty((self.capacity, *shape), dtype=_TORCH_DTYPES[dt], device=device)
-            for shape, dt in self.layout
+            torch.empty((self.capacity, *shape), dtype=dtype, device=device)
+            for shape, dtype, _, _ in self.fields
         )
         for a in range(0, self.capacity, chunk):
             part = self.read_batch(range(a, min(self.capacity, a + chunk)))
@@ -429,10 +429,10 @@ class SlotCache:
         return out
 
     def _unpack(self, raw: np.ndarray) -> Any:
-        out, at = [], 0
-        for (shape, dt), size in zip(self.layout, self.sizes, strict=True):
-            out.append(torch.from_numpy(raw[at : at + size].copy().view(dt).reshape(shape)))
-            at += size
+        out = [
+            torch.from_numpy(raw[at : at + size].copy().view(dt).reshape(shape))
+            for (shape, dt), (_, _, at, size) in zip(self.layout, self.fields, strict=True)
+        ]
         return out[0] if len(out) == 1 else tuple(out)
 
     def __len__(self) -> int:
