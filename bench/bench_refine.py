@@ -9,8 +9,8 @@ evidence (``--oracle``: the fit's ceiling; the full or the visible masks, as
 ``bopsurg eval``; it prints the paper's table, AR_MSSD / AR_MSPD, the median translation
 error per camera axis and the CPU time per 640x480 image (network, refinement).
 
-    python bench/bench_refine.py DATASET --out bench/out/refine [--segmenter SEG.pt] \
-        [--oracle] [--stride 1] [--from-gt] [--oracle-boxes] \
+    python bench/bench_refine.py DATASET [--split test] --out bench/out/refine \
+        [--segmenter SEG.pt] [--oracle] [--stride 1] [--from-gt] [--oracle-boxes] \
         [--option refine.fit.prior_weight=0.3] [--option head.zoom=[1]]
 
 ``--option`` takes any setting of ``bopsurg predict``'s configuration (dotted keys).
@@ -86,8 +86,8 @@ def axis_medians(ds: BopDataset, est: PoseEstimates, min_visib: float) -> tuple[
     return [float(v) for v in np.median(np.array(d), axis=0)], float(np.median(rel))
 
 
-def evaluate(data: Path, results: Path, out: Path) -> tuple[dict, dict]:
-    args = ["-q", "eval", str(data), str(results), "--out", str(out)]
+def evaluate(data: Path, split: str, results: Path, out: Path) -> tuple[dict, dict]:
+    args = ["-q", "eval", str(data), str(results), "--split", split, "--out", str(out)]
     code = bopsurg([*args, "--metrics", "re,te,mssd,mspd", "--no-progress"])
     if code:
         raise SystemExit(f"bopsurg eval failed with exit code {code}")
@@ -101,7 +101,8 @@ def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("dataset", type=Path, help="BOP dataset root with a test split")
+    ap.add_argument("dataset", type=Path, help="BOP dataset root with a held-out split")
+    ap.add_argument("--split", default="test", help="the split measured (default: test)")
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     ap.add_argument(
         "--segmenter",
@@ -257,7 +258,7 @@ def score(args: argparse.Namespace, ds: BopDataset, name: str, r: list[Row]) -> 
     )
     path = args.out / f"results_{name}.csv"
     save_results(path, est_n)
-    summary, scores = evaluate(args.dataset, path, args.out / f"eval_{name}")
+    summary, scores = evaluate(args.dataset, args.split, path, args.out / f"eval_{name}")
     axes, depth_bias = axis_medians(ds, est_n, summary["min_visib"])
     print(f"\n== {name} ==\n{format_table(summary, scores)}")
     print("median |dx|, |dy|, |dz| (camera frame, mm): " + ", ".join(f"{v:.2f}" for v in axes))
@@ -278,7 +279,7 @@ def main() -> None:
     args = parse_args()
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    ds = BopDataset(args.dataset, "test")
+    ds = BopDataset(args.dataset, args.split)
     st = setup(args, ds)
     rows, ms, n_images = run_split(args, ds, st)
     report: dict = {"images": n_images, "stride": args.stride, "options": args.option}

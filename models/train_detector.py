@@ -164,6 +164,8 @@ def train_detector(
     )  # fmt: skip
     legacy = {"model": preset_cfg.to_dict(), "recipe": LEGACY_RECIPE}
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
+    if training.finished(run, state, Path(out) / "detector.pt"):
+        return Path(out) / "detector.pt"
     write_config(out, resolved("detector", preset, seed, cfg, recipe, loader))
     train, val = (
         load_detection_set(

@@ -323,6 +323,8 @@ def train_pose(
     legacy_cfg = replace(preset_cfg, symmetric=cfg.symmetric)  # runs before config files
     legacy = {"model": legacy_cfg.to_dict(), "recipe": LEGACY_RECIPE}
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
+    if training.finished(run, state, Path(out) / "pose.pt"):
+        return Path(out) / "pose.pt"
     write_config(out, resolved("pose", preset, seed, cfg, recipe, loader))
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
     train, val = (

@@ -275,6 +275,17 @@ def open_run(
     return run, state
 
 
+def finished(run: RunFolder, state: dict[str, Any] | None, export: Path) -> bool:
+    """Whether a resumed run has nothing left to train: its state holds the recipe's last
+    epoch and its export exists (a trainer then returns ``export`` before loading any data)."""
+    epochs = run.settings.recipe.get("epochs")
+    done = state is not None and epochs is not None and int(state["epoch"]) + 1 >= int(epochs)
+    if done and export.is_file():
+        log.info("%s: all %d epochs trained; nothing to resume", run.out, epochs)
+        return True
+    return False
+
+
 def init_weights(
     model: nn.Module,
     path: str | Path,

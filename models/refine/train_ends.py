@@ -328,6 +328,8 @@ def train_ends(
         {"val_split": val_split, "obj_id": obj_id}, cfg.to_dict(),
     )  # fmt: skip
     run, state = training.open_run(out, settings, restart=restart)
+    if training.finished(run, state, Path(out) / "needle_ends.pt"):
+        return Path(out) / "needle_ends.pt"
     write_config(out, resolved("ends", preset, seed, cfg, recipe, loader))
     x_tr, y_tr, x_va, y_va = _ends(splits, obj_id, arc, cfg, recipe, seed)
     n_val = len(x_va)

@@ -342,6 +342,8 @@ def train_seg(
         {"val_split": val_split, "obj_id": obj_id}, cfg.to_dict(),
     )  # fmt: skip
     run, state = training.open_run(out, settings, restart=restart)
+    if training.finished(run, state, Path(out) / "needle_seg.pt"):
+        return Path(out) / "needle_seg.pt"
     write_config(out, resolved("seg", preset, seed, cfg, recipe, loader))
     whole = cfg.frame == "whole"
     sets = [

@@ -104,6 +104,23 @@ def test_a_resumed_run_ends_with_the_same_weights(dataset, trained, tmp_path):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
 
 
+def test_a_finished_run_returns_its_weights_without_loading_data(
+    dataset, trained, tmp_path, monkeypatch, capsys
+):
+    _, pose = trained
+    out = tmp_path / "pose"
+    shutil.copytree(pose.parent, out)
+    written = (out / "pose.pt").stat().st_mtime_ns
+
+    def no_data(*_a, **_k):
+        raise AssertionError("a finished run loaded its data")
+
+    monkeypatch.setattr("bopsurg.models.train_pose.load_pose_set", no_data)
+    assert _train("pose", dataset, out, 2) == 0  # both epochs done
+    assert "all 2 epochs trained; nothing to resume" in capsys.readouterr().err
+    assert (out / "pose.pt").stat().st_mtime_ns == written
+
+
 def test_loader_workers_do_not_change_the_weights(dataset, trained, tmp_path):
     _, pose = trained
     out = tmp_path / "pose_w1"
