@@ -140,10 +140,6 @@ class FitSettings:
         outline_weight: Weight of the outline term's mean against the reverse term's.
         lambda0: Initial damping, relative to the diagonal.
         mirror_start: Also start from the tilt-mirrored pose (always with depth points).
-        depth_starts: Also start from the pose head's pose moved along its line of sight to
-            these factors of its distance (e.g. ``[0.8, 1.25]``), each held by the prior near
-            itself: one start reaches only a few percent in depth, and out of its training
-            domain the head's depth is off by more (empty: none).
         prior_deg: Sigma of the Gaussian prior on rotation around the pose head's pose, deg.
         prior_mm: Sigmas of the prior on translation along camera x, y, z, mm.
         prior_weight: The prior's weight against the mean image cost.
@@ -167,7 +163,6 @@ class FitSettings:
     outline_weight: float = 1.0
     lambda0: float = 1e-3
     mirror_start: bool = False
-    depth_starts: tuple[float, ...] = ()
     prior_deg: float = 8.0
     prior_mm: tuple[float, float, float] = (1.5, 1.5, 2.5)
     prior_weight: float = 0.05
@@ -176,12 +171,6 @@ class FitSettings:
     evidence_upsample: int = 2
     mask_threshold: float = 0.5
     min_evidence: int = 12
-
-    def __post_init__(self) -> None:
-        if not all(0 < f < float("inf") for f in self.depth_starts):
-            raise ValueError(
-                f"refine.fit.depth_starts must be positive factors, got {list(self.depth_starts)}"
-            )
 
 
 @dataclass(frozen=True)

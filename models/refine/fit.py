@@ -655,10 +655,9 @@ def refine_poses(
         return _fit_batch(dev, arc, s, dep, ev, poses, p, sub, own_priors & has_points[rows])
 
     with cpu_workers(dev) as parts:
-        # a ROI's rows: the network's pose, its mirror, the extra starts, the depth starts
+        # a ROI's rows: the network's pose, its mirror, the extra starts
         mirrored = s.mirror_start | has_points[idx]
         rows_per_roi = 1 + mirrored + np.bincount(extra.roi, minlength=n)[idx]
-        rows_per_roi += len(s.depth_starts) * ~has_points[idx]
         groups = workers.split(idx, parts, rows_per_roi)
         for rows, res in zip(groups, workers.run(fit_group, groups), strict=True):
             for field, value in zip(out, res, strict=True):
@@ -682,12 +681,10 @@ def _fit_batch(
     R0, t0, K = (torch.as_tensor(a, dtype=torch.float64, device=device) for a in poses)
     n = len(evidence)
     mirror = np.array([s.mirror_start or p is not None for p in points], bool)
-    scaled = np.array([p is None for p in points], bool)  # no depth image measures the depth
-    roi, R_s, t_s, slot, own = _start_poses(R0, t0, arc, mirror, starts, s.depth_starts, scaled)
+    roi, R_s, t_s, slot = _start_poses(R0, t0, arc, mirror, starts)
     # x = (ω, δt): R = exp(ω)·R_start, t = t_start + δt. The prior holds the directions the
-    # image does not fix (depth, tilt) near the network's pose (unless ``own_priors``; a
-    # depth start is held near itself: it is there to leave the network's depth)
-    held = ((slot > 0) & ~own & ~torch.as_tensor(own_priors, device=device)[roi])[:, None]
+    # image does not fix (depth, tilt) near the network's pose (unless ``own_priors``)
+    held = ((slot > 0) & ~torch.as_tensor(own_priors, device=device)[roi])[:, None]
     x_prior = torch.cat([-log_so3(R_s @ R0[roi].transpose(1, 2)), t0[roi] - t_s], -1)
     x_prior = torch.where(held, x_prior, 0.0)
     with_points = [p if p is not None else np.zeros((0, 3)) for p in points]
@@ -695,10 +692,8 @@ def _fit_batch(
     ev = EvidenceBatch.stack(evidence, device, reuse=True)  # used only in this call
     prob = _Problem(arc, ev, K, s, roi, stacked, depth)
     sigma = np.array([np.deg2rad(s.prior_deg)] * 3 + list(s.prior_mm), float)
-    sq = torch.as_tensor(np.sqrt(s.prior_weight) / sigma, device=device).expand(len(roi), 6)
-    # a depth start's prior barely holds its depth: the image is to decide it
-    sq = torch.where(own[:, None] & (torch.arange(6, device=device) == 5), sq * _LOOSE, sq)
-    prior_H = torch.diag_embed(sq**2)
+    sq = torch.as_tensor(np.sqrt(s.prior_weight) / sigma, device=device)
+    prior_H = torch.diag(sq**2)
 
     def total(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         c, H, g, _ = prob.evaluate(exp_so3(x[:, :3]) @ R_s, t_s + x[:, 3:])
@@ -730,13 +725,6 @@ def _fit_batch(
     return tuple(a.cpu().numpy() for a in (R_out, t_out, cost_out, start_cost, ok))  # type: ignore[return-value]
 
 
-#: A depth start's prior on its depth (:attr:`FitSettings.depth_starts`) against the other
-#: starts': its sigma 4x theirs (10 mm at the default 2.5), so that the start, once near the
-#: depth the image gives, is not held back at its own (on silhouettes 15 % off in depth: 0.2-0.9
-#: mm from the truth, against 0.7-3.3 mm with the others' sigma; tests/models/test_refine.py).
-_LOOSE = 0.25
-
-
 def _best_rows(cost: Tensor, roi: Tensor, slot: Tensor, n: int) -> tuple[Tensor, Tensor]:
     """Each ROI's cheapest row (the first of equals) and whether none of its costs is NaN."""
     table = torch.full((n, int(slot.max()) + 1), torch.inf, dtype=cost.dtype, device=cost.device)
@@ -748,59 +736,27 @@ def _best_rows(cost: Tensor, roi: Tensor, slot: Tensor, n: int) -> tuple[Tensor,
 
 
 def _start_poses(
-    R_init: Tensor,
-    t_init: Tensor,
-    arc: ArcModel,
-    mirror: NDArray[np.bool_],
-    starts: Starts,
-    depth_starts: Sequence[float] = (),
-    scaled: NDArray[np.bool_] | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    R_init: Tensor, t_init: Tensor, arc: ArcModel, mirror: NDArray[np.bool_], starts: Starts
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The fit's start rows, grouped by ROI: ROI (b,), rotations (b, 3, 3), translations
-    (b, 3) mm, each row's place among its ROI's starts (b,) and which rows are depth starts
-    (b,) bool. Per ROI: the network's pose, its tilt mirror (where ``mirror``), its
-    ``starts``, and where ``scaled`` (default: every ROI) the network's pose moved along its
-    line of sight to each factor of ``depth_starts`` times its distance (the projection's
-    centre stays, its size scales), each with the network's tip and tail (the data cost
-    hardly tells them apart)."""
+    (b, 3) mm and each row's place among its ROI's starts (b,). Per ROI: the network's pose,
+    its tilt mirror (where ``mirror``) and its ``starts``, each with the network's tip and
+    tail (the data cost hardly tells them apart)."""
     dev = R_init.device
     n = len(R_init)
     m = torch.as_tensor(np.flatnonzero(mirror), device=dev)
-    k = len(depth_starts)
-    d = (
-        torch.arange(n, device=dev)
-        if scaled is None
-        else torch.as_tensor(np.flatnonzero(scaled), device=dev)
-    )
-    factors = torch.as_tensor(list(depth_starts), dtype=t_init.dtype, device=dev)
-    roi = torch.cat(
-        [torch.arange(n, device=dev), m, torch.as_tensor(starts.roi, device=dev), d.repeat(k)]
-    )
+    roi = torch.cat([torch.arange(n, device=dev), m, torch.as_tensor(starts.roi, device=dev)])
     R = torch.cat(
-        [
-            R_init,
-            mirror_pose(R_init[m], t_init[m]),
-            torch.as_tensor(starts.R, device=dev),
-            R_init[d].repeat(k, 1, 1),
-        ]
+        [R_init, mirror_pose(R_init[m], t_init[m]), torch.as_tensor(starts.R, device=dev)]
     )
-    t = torch.cat(
-        [
-            t_init,
-            t_init[m],
-            torch.as_tensor(starts.t, device=dev),
-            (factors[:, None, None] * t_init[d]).reshape(-1, 3),
-        ]
-    )
-    own = torch.zeros(len(roi), dtype=torch.bool, device=dev)
-    own[len(roi) - len(d) * k :] = True
+    t = torch.cat([t_init, t_init[m], torch.as_tensor(starts.t, device=dev)])
     order = torch.as_tensor(np.argsort(roi.cpu().numpy(), kind="stable"), device=dev)
-    roi, R, t, own = roi[order], R[order], t[order], own[order]
+    roi, R, t = roi[order], R[order], t[order]
     R = same_ends(R, t, R_init[roi], t_init[roi], arc)
     counts = torch.bincount(roi, minlength=n)
     first = torch.cumsum(counts, 0) - counts
     slot = torch.arange(len(roi), device=dev) - first[roi]
-    return roi, R, t, slot, own
+    return roi, R, t, slot
 
 
 def refine_pose(
