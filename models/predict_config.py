@@ -35,7 +35,7 @@ HOW_TO_GET = {
     "detector": "bopsurg train detector DATA --out RUN",
     "pose": "bopsurg train pose DATA --out RUN",
     "segmenter": "bopsurg train seg DATA --out RUN --config $(bopsurg recipes --path seg)",
-    "ends": "bopsurg train ends DATA --out RUN --config $(bopsurg recipes --path ends)",
+    "ends": "bopsurg train ends DATA --out RUN --config $(bopsurg recipes --path robust_ends)",
 }
 
 

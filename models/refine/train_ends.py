@@ -1,7 +1,7 @@
 """Train the needle-end classifier (:mod:`.ends`) on a BOP split's GT poses.
 
     bopsurg train ends DATASET --split train --out runs/ends --seed 0 \
-        [--config bopsurg/recipes/ends.yaml]
+        [--config bopsurg/recipes/robust_ends.yaml]
 
 Per GT needle instance (visib_fract >= 0.3) the patches of its two ends are cut at the GT
 pose, twice the side the classifier sees (so a jittered crop stays inside), and kept in

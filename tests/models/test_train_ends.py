@@ -1,5 +1,5 @@
 """``bopsurg train ends`` on the shared epoch loop: a killed run resumes to the weights of an
-uninterrupted one, the shipped classifier's recipe builds its network, and the former entry
+uninterrupted one, the shipped classifier is its recipe's run, and the former entry
 point says where the trainer went. (Seeding, the margin and errors: ``test_ends.py``.)"""
 
 from __future__ import annotations
@@ -55,21 +55,24 @@ def test_a_killed_run_resumes_to_the_weights_of_an_uninterrupted_one(
     assert info["meta"]["settings"]["recipe"]["augment"]["jpeg_p"] > 0  # domain by default
 
 
-def test_the_recipe_of_the_shipped_classifier_builds_its_network():
+def test_the_shipped_classifier_is_its_recipes_run():
+    """The shipped weights record the run of ``robust_ends.yaml`` as the recipe resolves
+    today: network, recipe, augmentations, seed, preset, training and validation splits."""
     from bopsurg.models.refine.ends import EndConfig, EndNet
 
     out = io.StringIO()
-    recipe = ROOT / "bopsurg" / "recipes" / "ends.yaml"
+    recipe = ROOT / "bopsurg" / "recipes" / "robust_ends.yaml"
     with contextlib.redirect_stdout(out):
         assert main(["train", "ends", "--config", str(recipe), "--dump-config"]) == 0
     conf = yaml.safe_load(out.getvalue())
     state, info = load_checkpoint(ROOT / "models" / "weights" / "needle_ends.pt", "needle_ends")
+    run = info["meta"]["settings"]
     assert conf["ends"] == info["config"]
-    shipped = info["meta"]["recipe"]
-    steps = conf["recipe"]["epochs"] * conf["recipe"]["steps_per_epoch"]
-    assert (steps, conf["recipe"]["batch_size"]) == (shipped["steps"], shipped["batch"])
-    assert conf["recipe"]["margin"] == info["meta"]["margin"]
-    assert conf["recipe"]["turn_deg"] == shipped["turn_deg"]
+    assert run["recipe"] == {**conf["recipe"], "augment": conf["augment"]}
+    assert (run["seed"], run["preset"]) == (conf["seed"], conf["preset"])
+    assert run["split"] == ",".join(conf["data"]["train"])
+    assert run["extra"]["val_split"] == ",".join(conf["data"]["val"])
+    assert info["meta"]["epoch"] == conf["recipe"]["epochs"]  # its last epoch, not a pick
     load_weights(EndNet(EndConfig.from_dict(conf["ends"])), state, "needle_ends.pt")
 
 
