@@ -38,10 +38,9 @@ from numpy.typing import NDArray
 from torch import Tensor
 
 from bopsurg.models.predict_config import PointsFitSettings
-from bopsurg.models.refine import workers
 from bopsurg.models.refine.arc import ArcModel, exp_so3, mirror_pose, same_ends
 from bopsurg.models.refine.fit import cauchy
-from bopsurg.models.refine.lm import levenberg_marquardt, normal_equations
+from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
 from bopsurg.models.refine.wire3d import (
     camera_normal_equations,
     stack_points,
@@ -49,7 +48,6 @@ from bopsurg.models.refine.wire3d import (
     wire_distances,
     wire_residuals_model,
 )
-from bopsurg.models.refine.workers import cpu_workers
 from bopsurg.needle import fit_circle
 
 F64 = NDArray[np.float64]
@@ -178,8 +176,8 @@ def fit_depths(
             (:func:`.wire3d.depth_points`).
         arc: The needle's centre line.
         settings: Knobs.
-        device: Where the fit runs (float64); on a CPU with n torch threads, as n groups
-            of needles side by side (:mod:`.workers`).
+        device: Where the fit runs (float64); on a CPU, on the calling thread with one
+            intra-op thread (:func:`.lm.fit_threads`).
 
     Returns:
         Per needle the fitted pose, or the input one (``used`` False) where the guard
@@ -198,21 +196,16 @@ def fit_depths(
     idx = [i for i, p in enumerate(pts) if len(p) >= s.min_points and not _collinear(p)]
     if not idx:
         return out
-    dev = torch.device(device)
-
-    def fit_group(rows: NDArray[np.int64]) -> None:
-        # preparation, once per needle: the pose from the points' own geometry
-        geometric = [pose_from_points(pts[i], arc) for i in rows]
-        R0, t0 = (torch.as_tensor(a[rows], device=dev) for a in (R, t))
+    dev, rows = torch.device(device), np.asarray(idx, np.int64)
+    # preparation, once per needle: the pose from the points' own geometry
+    geometric = [pose_from_points(pts[i], arc) for i in rows]
+    R0, t0 = (torch.as_tensor(a[rows], device=dev) for a in (R, t))
+    with fit_threads(dev):
         R_b, t_b, inliers, used = _fit_rows(R0, t0, [pts[i] for i in rows], geometric, arc, s)
-        out.inliers[rows] = inliers.cpu().numpy()
-        out.used[rows] = used.cpu().numpy()
-        out.R[rows] = torch.where(used[:, None, None], R_b, R0).cpu().numpy()
-        out.t[rows] = torch.where(used[:, None], t_b, t0).cpu().numpy()
-
-    with cpu_workers(dev) as parts:  # each group writes its own rows of ``out``
-        weight = [min(len(pts[i]), s.max_points) for i in idx]
-        workers.run(fit_group, workers.split(np.asarray(idx, np.int64), parts, weight))
+    out.inliers[rows] = inliers.cpu().numpy()
+    out.used[rows] = used.cpu().numpy()
+    out.R[rows] = torch.where(used[:, None, None], R_b, R0).cpu().numpy()
+    out.t[rows] = torch.where(used[:, None], t_b, t0).cpu().numpy()
     return out
 
 

@@ -42,15 +42,13 @@ from numpy.typing import ArrayLike, NDArray
 from torch import Tensor
 
 from bopsurg.models.predict_config import DepthSettings, FitSettings
-from bopsurg.models.refine import workers
 from bopsurg.models.refine.arc import ArcModel, exp_so3, log_so3, mirror_pose, same_ends
-from bopsurg.models.refine.lm import levenberg_marquardt, normal_equations
+from bopsurg.models.refine.lm import fit_threads, levenberg_marquardt, normal_equations
 from bopsurg.models.refine.wire3d import (
     camera_normal_equations,
     stack_points,
     wire_residuals_model,
 )
-from bopsurg.models.refine.workers import cpu_workers
 
 F64 = NDArray[np.float64]
 
@@ -616,8 +614,8 @@ def refine_poses(
             the first start (the network's pose), so that a start far from it is not held
             back (for when the network's pose disagrees with the points).
         depth: the depth term's settings (defaults when None).
-        device: where the fit runs (float64); on a CPU with n torch threads, as n groups
-            of ROIs side by side (:mod:`.workers`).
+        device: where the fit runs (float64); on a CPU, on the calling thread with one
+            intra-op thread (:func:`.lm.fit_threads`).
 
     Returns:
         Per ROI the fitted pose where it beats the start's cost (``improved``), else the
@@ -644,24 +642,16 @@ def refine_poses(
     idx = np.flatnonzero(active)
     extra = starts or Starts.none()
     dev, dep = torch.device(device), depth or DepthSettings()
-
-    def fit_group(rows: np.ndarray) -> tuple[F64, F64, F64, F64, NDArray[np.bool_]]:
-        keep = np.isin(extra.roi, rows)
-        remap = np.zeros(n, np.int64)
-        remap[rows] = np.arange(len(rows))
-        sub = Starts(extra.R[keep], extra.t[keep], remap[extra.roi[keep]])
-        ev, p = [evidence[int(i)] for i in rows], [pts[i] for i in rows]
-        poses = (R_init[rows], t_init[rows], K[rows])
-        return _fit_batch(dev, arc, s, dep, ev, poses, p, sub, own_priors & has_points[rows])
-
-    with cpu_workers(dev) as parts:
-        # a ROI's rows: the network's pose, its mirror, the extra starts
-        mirrored = s.mirror_start | has_points[idx]
-        rows_per_roi = 1 + mirrored + np.bincount(extra.roi, minlength=n)[idx]
-        groups = workers.split(idx, parts, rows_per_roi)
-        for rows, res in zip(groups, workers.run(fit_group, groups), strict=True):
-            for field, value in zip(out, res, strict=True):
-                field[rows] = value
+    keep = np.isin(extra.roi, idx)  # the extra starts of the fitted ROIs, renumbered
+    remap = np.zeros(n, np.int64)
+    remap[idx] = np.arange(len(idx))
+    sub = Starts(extra.R[keep], extra.t[keep], remap[extra.roi[keep]])
+    ev, p = [evidence[int(i)] for i in idx], [pts[i] for i in idx]
+    poses = (R_init[idx], t_init[idx], K[idx])
+    with fit_threads(dev):
+        res = _fit_batch(dev, arc, s, dep, ev, poses, p, sub, own_priors & has_points[idx])
+    for field, value in zip(out, res, strict=True):
+        field[idx] = value
     return out
 
 

@@ -25,7 +25,6 @@ from bopsurg.geometry import transform_pts
 from bopsurg.models.checkpoint import load_checkpoint, load_weights
 from bopsurg.models.pose.roi import crop
 from bopsurg.models.predict_config import DepthSettings, FitSettings
-from bopsurg.models.refine import workers
 from bopsurg.models.refine.arc import ArcModel
 from bopsurg.models.refine.depth_fit import fit_depths
 from bopsurg.models.refine.fit import Evidence, FitResults, Starts, refine_poses
@@ -36,7 +35,6 @@ from bopsurg.models.refine.wire3d import (
     strided_points,
     wire_distances,
 )
-from bopsurg.models.refine.workers import cpu_workers
 
 #: The fit's evidence from a segmenter: ``full`` (the default when the segmenter predicts the
 #: full, amodal mask: the arc may lie on the full mask, the pixels it must explain are the
@@ -295,9 +293,7 @@ class NeedleRefiner:
                 out.append((ev, P))
             return out
 
-        with cpu_workers(self.device) as parts:  # OpenCV and numpy let go of the GIL
-            groups = workers.split(np.arange(n), parts)
-            prepared = [x for g in workers.run(prepare, groups) for x in g]
+        prepared = prepare(np.arange(n))
         evidence = [ev for ev, _ in prepared]
         points = [P for _, P in prepared]
         with_depth = np.array([p is not None for p in points], bool)

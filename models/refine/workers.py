@@ -1,15 +1,16 @@
-"""The CPU's cores for the refinement's independent parts: groups of ROIs fitted side by side.
+"""The CPU's cores for the segmenter's passes over a batch's images, side by side.
 
-A fit is a batch of small torch ops (thousands of elements each), so one intra-op thread per
-op is best (:func:`.lm.fit_threads`); handing each op to a second thread costs more than it
-saves. The cores are used instead by running independent groups of ROIs at once on a pool of
-threads: a ROI's problem is its own (its starts, its evidence, its stop), torch and OpenCV
-release the GIL inside their kernels, and the groups are joined in their order. As many
-groups as torch had threads when the fit began (``torch.get_num_threads()``, the budget
-``bopsurg predict`` gives the networks), so a run on one thread splits nothing.
+The segmenter's small convolutions gain less from a second intra-op thread than from a
+second image, so the refinement stage runs the images' passes as groups at once on a pool of
+threads, one intra-op thread each (torch lets go of the GIL inside its kernels), joined in
+their order; as many groups as torch had threads when the stage began
+(``torch.get_num_threads()``, the budget ``bopsurg predict`` gives the networks), so a run on
+one thread splits nothing.
 
-A group is padded to its own largest ROI (points, grid), so a split moves a pose by roundoff
-alone (``tests/models/test_refine_batch.py``: a batch equals its ROIs fitted alone).
+The fits do not run here: their ops are small (thousands of elements), so two threads mostly
+hand the GIL to each other. Split in two groups at batch 8 on 2 cores they took 1.4-1.8x
+the wall time and twice the CPU time of one group (``bench/bench_fit_batch.py``); they run on
+the calling thread with one intra-op thread (:func:`.lm.fit_threads`).
 """
 
 from __future__ import annotations
@@ -42,26 +43,23 @@ os.register_at_fork(after_in_child=_forget_pool)
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """One process-wide pool, kept between calls (its threads keep their own buffers, e.g.
-    :func:`.fit._host_buffer`, warm), grown when more workers are asked for."""
+    """One process-wide pool, kept between calls, grown when more workers are asked for."""
     global _POOL, _POOL_SIZE
     with _LOCK:
         if _POOL is None or workers > _POOL_SIZE:
             if _POOL is not None:
                 _POOL.shutdown(wait=True)
-            _POOL, _POOL_SIZE = ThreadPoolExecutor(workers, "bopsurg-fit"), workers
+            _POOL, _POOL_SIZE = ThreadPoolExecutor(workers, "bopsurg-refine"), workers
         return _POOL
 
 
-def split(rows: np.ndarray, parts: int, weight: np.ndarray | None = None) -> list[np.ndarray]:
-    """``rows`` in at most ``parts`` consecutive, non-empty groups of about equal total
-    ``weight`` (per row; default 1 each)."""
+def split(rows: np.ndarray, parts: int) -> list[np.ndarray]:
+    """``rows`` in at most ``parts`` consecutive, non-empty groups of about equal size."""
     rows = np.asarray(rows)
     parts = max(1, min(parts, len(rows)))
     if parts == 1:
         return [rows]
-    w = np.ones(len(rows)) if weight is None else np.asarray(weight, float)
-    ends = np.cumsum(w)
+    ends = np.arange(1, len(rows) + 1, dtype=float)
     want = ends[-1] * np.arange(1, parts) / parts
     cut = np.abs(ends[None, :] - want[:, None]).argmin(axis=1) + 1  # nearest share, each cut
     return [g for g in np.split(rows, np.unique(np.clip(cut, 1, len(rows) - 1))) if len(g)]

@@ -150,11 +150,11 @@ def test_the_argmin_is_torchs_with_the_first_of_equals():
     assert _argmin_last(x).dtype == torch.int64
 
 
-def test_the_split_keeps_order_and_balances_weight():
+def test_the_split_keeps_order_and_balances_size():
     rows = np.arange(10, 20)
-    groups = workers.split(rows, 2, weight=np.r_[np.full(5, 3.0), np.ones(5)])
+    groups = workers.split(rows, 2)
     np.testing.assert_array_equal(np.concatenate(groups), rows)
-    assert [len(grp) for grp in groups] == [3, 7]
+    assert [len(grp) for grp in groups] == [5, 5]
     assert len(workers.split(rows[:1], 4)) == 1
     assert [len(grp) for grp in workers.split(rows, 3)] == [3, 4, 3]
 
