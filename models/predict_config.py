@@ -266,13 +266,14 @@ class EndsSettings:
     Attributes:
         classifier: Its weights (``shipped``, a path), or null: no end check.
         margin: The logit margin the tail must win by (the pose head's own say on which end
-            is the tip).
+            is the tip); null: the margin recorded with the classifier (its recipe's
+            ``margin``, chosen on validation splits: 3 for the shipped one).
         unheld_margin: The margin for poses the RGB-D fit took without the pose head's prior
             (null: ``margin``).
     """
 
     classifier: str | None = "shipped"
-    margin: float = 3.0
+    margin: float | None = None
     unheld_margin: float | None = None
 
     def __post_init__(self) -> None:

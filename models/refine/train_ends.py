@@ -19,7 +19,7 @@ accuracy on seen ends.
 
 Writes OUT/needle_ends.pt (the EMA weights) and its JSON (config, the needle arc, recipe,
 seed, accuracy, and ``recipe.margin``: the logit margin a swap needs when the estimator runs
-this classifier without an ``ends_margin`` option; choose it on validation splits with
+this classifier without an ``ends.margin`` setting; choose it on validation splits with
 ``bench/bench_ends.py``, the smallest margin at which the classifier turns none of their
 right poses).
 """

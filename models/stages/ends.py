@@ -53,7 +53,7 @@ class EndStage:
             index: (n,) the image of each pose (None: all in image 0).
         """
         s = self.settings
-        margin = np.full(len(R), s.margin)
+        margin = np.full(len(R), self.judge.margin)  # the setting's, else the recorded one
         if s.unheld_margin is not None:
             margin = np.where(unheld, s.unheld_margin, margin)
         R_out: np.ndarray = self.judge(image, K, R, t, margin, index)[0]
@@ -63,6 +63,6 @@ class EndStage:
         """What the end check did, for ``bopsurg predict``."""
         st = self.judge.stats
         return (
-            f"end check (margin {self.settings.margin:g}) turned {st.swapped} of {st.checked} "
+            f"end check (margin {self.judge.margin:g}) turned {st.swapped} of {st.checked} "
             "needles end for end"
         )

@@ -224,9 +224,10 @@ def test_the_margin_chosen_for_a_classifier_travels_with_it(dataset, tmp_path):
     assert load_checkpoint(path, "needle_ends")[1]["meta"]["margin"] == 2.5
     assert load_judge(path, torch.device("cpu")).margin == 2.5
     assert load_judge(path, torch.device("cpu"), margin=1.0).margin == 1.0
-    # the estimator's margin is its config's (one home for every setting), not the file's
+    # the estimator runs a classifier at the margin chosen for it, unless ends.margin is set
     opts = {**BARE, "ends": {"classifier": str(path)}}
-    assert create(opts).ends.judge.margin == EndsSettings().margin
+    assert EndsSettings().margin is None
+    assert create(opts).ends.judge.margin == 2.5
     assert create({**opts, "ends": {"classifier": str(path), "margin": 0}}).ends.judge.margin == 0
     info = load_checkpoint(path, "needle_ends")[1]
     save_checkpoint(
