@@ -164,8 +164,9 @@ def train_detector(
     )  # fmt: skip
     legacy = {"model": preset_cfg.to_dict(), "recipe": LEGACY_RECIPE}
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
-    if training.finished(run, state, Path(out) / "detector.pt"):
-        return Path(out) / "detector.pt"
+    weights = Path(out) / "detector.pt"
+    if training.finished(run, state, weights):
+        return weights
     write_config(out, resolved("detector", preset, seed, cfg, recipe, loader))
     train, val = (
         load_detection_set(
@@ -184,7 +185,7 @@ def train_detector(
             model, recipe.init, "detector", cfg.to_dict(), meta, DETECTOR_TRAINING_ONLY
         )
     model = model.to(dev)
-    export = training.Export(Path(out) / "detector.pt", "detector", cfg.to_dict(), meta)
+    export = training.Export(weights, "detector", cfg.to_dict(), meta)
     path: Path = training.fit(
         model, run, state, recipe.schedule(), n_train=len(train),
         step=_step_fn(model, recipe, dev, seed),

@@ -323,8 +323,9 @@ def train_pose(
     legacy_cfg = replace(preset_cfg, symmetric=cfg.symmetric)  # runs before config files
     legacy = {"model": legacy_cfg.to_dict(), "recipe": LEGACY_RECIPE}
     run, state = training.open_run(out, settings, restart=restart, legacy=legacy)
-    if training.finished(run, state, Path(out) / "pose.pt"):
-        return Path(out) / "pose.pt"
+    weights = Path(out) / "pose.pt"
+    if training.finished(run, state, weights):
+        return weights
     write_config(out, resolved("pose", preset, seed, cfg, recipe, loader))
     geo = object_geometry(ds, obj_id, cfg, recipe.symmetric)
     train, val = (
@@ -340,7 +341,7 @@ def train_pose(
         train = train.head(max_instances)
     log.info("pose: %d train instances, %d validation instances", len(train), len(val))
     model = _network(cfg, recipe.init if state is None else "", geo).to(dev)
-    export = training.Export(Path(out) / "pose.pt", "pose", cfg.to_dict(), geo.to_meta())
+    export = training.Export(weights, "pose", cfg.to_dict(), geo.to_meta())
     step = _step_fn(model, cfg, geo, recipe, dev, seed, *_mirror(train, ds, obj_id, recipe))
     path: Path = training.fit(
         model, run, state, recipe.schedule(), n_train=len(train), step=step,

@@ -328,8 +328,9 @@ def train_ends(
         {"val_split": val_split, "obj_id": obj_id}, cfg.to_dict(),
     )  # fmt: skip
     run, state = training.open_run(out, settings, restart=restart)
-    if training.finished(run, state, Path(out) / "needle_ends.pt"):
-        return Path(out) / "needle_ends.pt"
+    weights = Path(out) / "needle_ends.pt"
+    if training.finished(run, state, weights):
+        return weights
     write_config(out, resolved("ends", preset, seed, cfg, recipe, loader))
     x_tr, y_tr, x_va, y_va = _ends(splits, obj_id, arc, cfg, recipe, seed)
     n_val = len(x_va)
@@ -341,7 +342,7 @@ def train_ends(
         "arc": {"radius": arc.radius, "arc_rad": arc.arc_rad},
         "ends": len(x_tr), "val_ends": int((y_va != 0.5).sum()), "margin": recipe.margin,
     }  # fmt: skip
-    export = training.Export(Path(out) / "needle_ends.pt", "needle_ends", cfg.to_dict(), meta)
+    export = training.Export(weights, "needle_ends", cfg.to_dict(), meta)
     path: Path = training.fit(
         net, run, state, recipe.schedule(), n_train=len(x_tr),
         step=_step_fn(net, x_tr, y_tr, cfg, recipe, dev, seed),

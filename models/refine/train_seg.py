@@ -342,8 +342,9 @@ def train_seg(
         {"val_split": val_split, "obj_id": obj_id}, cfg.to_dict(),
     )  # fmt: skip
     run, state = training.open_run(out, settings, restart=restart)
-    if training.finished(run, state, Path(out) / "needle_seg.pt"):
-        return Path(out) / "needle_seg.pt"
+    weights = Path(out) / "needle_seg.pt"
+    if training.finished(run, state, weights):
+        return weights
     write_config(out, resolved("seg", preset, seed, cfg, recipe, loader))
     whole = cfg.frame == "whole"
     sets = [
@@ -360,7 +361,7 @@ def train_seg(
         init_weights(net, recipe.init)
     net = net.to(dev)
     meta = {"arc": {"radius": arc.radius, "arc_rad": arc.arc_rad}, "instances": len(train)}
-    export = training.Export(Path(out) / "needle_seg.pt", "needle_seg", cfg.to_dict(), meta)
+    export = training.Export(weights, "needle_seg", cfg.to_dict(), meta)
     path: Path = training.fit(
         net, run, state, recipe.schedule(), n_train=len(train),
         step=_step_fn(net, cfg, recipe, dev, seed),
