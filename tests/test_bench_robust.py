@@ -118,7 +118,8 @@ def test_the_committed_specs_use_new_seeds_and_one_definition_per_split():
     the same split everywhere, the recipes validate on the file's val splits, and no recipe
     trains on a sealed test split's episodes or seeds."""
     specs = _all_specs()
-    assert len(RECIPES) >= 4 and len(specs) == 1 + len(RECIPES)
+    assert len(RECIPES) >= 4
+    assert len(specs) == 1 + len(RECIPES)
     file_spec = specs[str(SPLITS_FILE)]
     assert set(file_spec.test) == {"test_paper", "test_wide"}
     sealed = [file_spec.splits[n] for n in file_spec.test]

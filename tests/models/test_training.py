@@ -92,3 +92,15 @@ def test_a_fixed_step_count_draws_from_consecutive_shuffles():
     assert training.Schedule(1, 3, 0.1, 0.0, 0.0, 0.0, 1).epoch_steps(7) == 2
     with pytest.raises(ValueError, match="precision"):
         training.Schedule(1, 3, 0.1, 0.0, 0.0, 0.0, 1, precision="fp16")
+
+
+@pytest.mark.parametrize(
+    "device",
+    ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+        not torch.cuda.is_available(), reason="needs a CUDA GPU"))],
+)  # fmt: skip
+def test_the_optimiser_is_fused_on_a_gpu_only(device):
+    """One fused AdamW kernel on a GPU; the CPU keeps the default (its runs stay as recorded)."""
+    schedule = training.Schedule(1, 4, 0.1, 0.0, 1.0, 0.5, 1)
+    p = training._start(torch.nn.Linear(1, 1).to(device), None, schedule)
+    assert bool(p.opt.defaults["fused"]) == (device == "cuda")
