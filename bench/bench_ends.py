@@ -9,20 +9,22 @@ runs, as a user would:
   2. bopsurg predict DATA --option ends.classifier=CKPT --option ends.margin=M   for each M
   3. bopsurg eval of each
 
-Step 2 is one pass of the classifier by default: the check is the last stage and changes
-nothing but the turned rotations, so the classifier judges each pose of step 1's results
-(which hold the poses to the last bit) once, on its decoded image, and each margin's results
-follow from that one say (``--predict-each``: a whole predict per margin, as above; needed
-where the dataset's needle model is mapped to the estimator's, or a --predict-option sets
-``ends.*`` or the unheld RGB-D fit). The two agree but for the classifier's roundoff on a
-batch of other poses: a say within about 1e-6 logits of a margin may fall the other way.
-
 and prints, per run: the paper's medians, the mean RE, the share of needles with RE > 90 deg
 (tip and tail swapped), AR_MSSD, and how many poses the check turned: in all, how many of them
 it mended (RE > 90 deg before, below after) and how many it broke (below before, above after).
 A classifier fit to be on by default breaks none on held-out splits of our renderer at its
 margin and mends the flips where they occur (the mirrored split of bench_faces.py, the
 paper's AMBF frames of bench_transfer.py: give their folders as DATA).
+
+Step 2 is one pass of the classifier by default: the check is the last stage and changes
+nothing but the turned rotations, so the classifier judges each pose of step 1's results
+(which hold the poses to the last bit) once, on its decoded image, and each margin's results
+follow from that one say (``--predict-each``: a whole predict per margin, as above; needed
+where the dataset's needle model is mapped to the estimator's, or a --predict-option sets
+``ends.*`` or the unheld RGB-D fit). The two agree up to roundoff (the classifier's on a
+batch of other poses, predict's own from run to run: on the demo's data, margins 0 and 3,
+the same table and turned poses, rotations within 5e-10); a say within roundoff of a margin
+may fall the other way.
 
     python bench/bench_ends.py DATA --split test --ends runs/ends/needle_ends.pt \
         --out runs/bench_ends [--margins 0,1,2,3] [--oracle-boxes] [--predict-option K=V]
