@@ -280,22 +280,17 @@ class NeedleRefiner:
         Ks = np.broadcast_to(np.asarray(K, float), (n, 3, 3))
         depths = _per_roi(depth, n)
 
-        def prepare(rois: np.ndarray) -> list[tuple[Evidence, np.ndarray | None]]:
-            """Once per ROI: distance transforms, back-projection."""
-            out: list[tuple[Evidence, np.ndarray | None]] = []
-            for i in rois.tolist():
-                ev, visible = self._evidence(masks, i)
-                d, P = depths[i], None
-                if d is not None:
-                    rows, cols = np.nonzero(visible)
-                    uv = ev.origin + ev.step * np.stack([cols, rows], 1)
-                    P = strided_points(depth_points(uv, d, Ks[i]), self.depth.max_points)
-                out.append((ev, P))
-            return out
-
-        prepared = prepare(np.arange(n))
-        evidence = [ev for ev, _ in prepared]
-        points = [P for _, P in prepared]
+        evidence: list[Evidence] = []
+        points: list[np.ndarray | None] = []
+        for i in range(n):  # once per ROI: distance transforms, back-projection
+            ev, visible = self._evidence(masks, i)
+            d, P = depths[i], None
+            if d is not None:
+                rows, cols = np.nonzero(visible)
+                uv = ev.origin + ev.step * np.stack([cols, rows], 1)
+                P = strided_points(depth_points(uv, d, Ks[i]), self.depth.max_points)
+            evidence.append(ev)
+            points.append(P)
         with_depth = np.array([p is not None for p in points], bool)
         has = np.flatnonzero(with_depth)
         alone = fit_depths(

@@ -7,10 +7,9 @@ their order; as many groups as torch had threads when the stage began
 (``torch.get_num_threads()``, the budget ``bopsurg predict`` gives the networks), so a run on
 one thread splits nothing.
 
-The fits do not run here: their ops are small (thousands of elements), so two threads mostly
-hand the GIL to each other. Split in two groups at batch 8 on 2 cores they took 1.4-1.8x
-the wall time and twice the CPU time of one group (``bench/bench_fit_batch.py``); they run on
-the calling thread with one intra-op thread (:func:`.lm.fit_threads`).
+The fits do not run here: their ops are small (thousands of elements), so two threads
+mostly hand the GIL to each other; they run on the calling thread with one intra-op thread
+(:func:`.lm.fit_threads`; the measurement is in docs/benches.md).
 """
 
 from __future__ import annotations
