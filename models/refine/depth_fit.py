@@ -125,7 +125,7 @@ def _lm(
     """The Cauchy fit of the wire to each row's ROI's points ``P`` ((n, N, 3) mm, and which
     are real (n, N)) from B start rows (:func:`.lm.levenberg_marquardt`): R (B, 3, 3),
     t (B, 3) mm, robust cost (B,)."""
-    points, ok = P[0][roi], P[1][roi]
+    points, ok = P[0][roi].transpose(1, 2).contiguous(), P[1][roi]  # by axis (B, 3, N)
 
     def objective(pose: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
         r, J = wire_residuals_model(pose[0], pose[1], points, arc)

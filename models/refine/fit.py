@@ -323,13 +323,17 @@ class _Problem:
             ev.step[roi][:, None, None],
             ev.size[roi][:, None],
         )
-        # the evidence in single precision about its grid's origin, for the nearest-sample
-        # search alone (it only picks which segments the float64 distances are taken to)
-        self.points32 = (self.rows.points - self.rows.origin).float()
+        # the evidence in single precision about its grid's origin, as (x, y, 1) (B, N, 3),
+        # for the nearest-sample search alone (it only picks which segments the float64
+        # distances are taken to; see _nearest)
+        p32 = (self.rows.points - self.rows.origin).float()
+        self.points32 = torch.cat([p32, torch.ones_like(p32[..., :1])], -1)
+        # the points by component (2, B, N, 1), for the arithmetic against both candidates
+        self.points_xy = self.rows.points.permute(2, 0, 1)[..., None].contiguous()
         self.depth = depth or DepthSettings()
         self.points = None
         if points is not None:
-            P, ok = points[0][roi], points[1][roi]
+            P, ok = points[0][roi].transpose(1, 2).contiguous(), points[1][roi]  # by axis
             self.points = (P, ok, ok.sum(-1).clamp(min=1).to(torch.float64))
 
     def project(self, R: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -343,7 +347,9 @@ class _Problem:
         return X, rx, torch.stack([u, v], -1)
 
     def jac_points(self, X: Tensor, rx: Tensor) -> Tensor:
-        """d(pixel)/d(ω, δt) of each model point, (B, M, 2, 6) for X → exp(ω)·rx + t + δt."""
+        """d(pixel)/d(ω, δt) of each model point by component, (2, 6, B, M): (u, v) × (ω, δt),
+        for X → exp(ω)·rx + t + δt. Component-major: every product after it is of contiguous
+        (B, M) blocks (a trailing axis of 2 or 6 makes each broadcast op several times slower)."""
         z = X[..., 2].clamp(min=1e-6)
         K = self.rows.K[:, None]
         zero = torch.zeros_like(z)
@@ -354,21 +360,20 @@ class _Problem:
         p_v = (zero, fy, -fy * X[..., 1] / z)
         a0, a1, a2 = rx.unbind(-1)
 
-        def row(p: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+        def row(p: tuple[Tensor, Tensor, Tensor]) -> list[Tensor]:
             p0, p1, p2 = p
-            cross = (a1 * p2 - a2 * p1, a2 * p0 - a0 * p2, a0 * p1 - a1 * p0)
-            return torch.stack([*cross, p0, p1, p2], -1)
+            return [a1 * p2 - a2 * p1, a2 * p0 - a0 * p2, a0 * p1 - a1 * p0, p0, p1, p2]
 
-        return torch.stack([row(p_u), row(p_v)], -2)
+        return torch.stack([*row(p_u), *row(p_v)]).view(2, 6, *z.shape)
 
     def wire_px(self, X: Tensor, rx: Tensor) -> tuple[Tensor, Tensor]:
-        """Wire radius in image px at each model point (B, M) and its d/d(ω, δt) (B, M, 6)."""
+        """Wire radius in image px at each model point (B, M) and its d/d(ω, δt) (6, B, M)."""
         z = X[..., 2].clamp(min=1e-6)
         rho = self.radius_px(self.wire, z)
         zero = torch.zeros_like(z)
         # dz/dω = ((R·X)_y, −(R·X)_x, 0), dz/dδt = (0, 0, 1)
-        dz = torch.stack([rx[..., 1], -rx[..., 0], zero, zero, zero, torch.ones_like(z)], -1)
-        return rho, -(rho / z)[..., None] * dz
+        dz = torch.stack([rx[..., 1], -rx[..., 0], zero, zero, zero, torch.ones_like(z)])
+        return rho, -(rho / z) * dz
 
     def radius_px(self, wire_mm: Tensor, z: Tensor) -> Tensor:
         """Image radius (px) of wire radii ``wire_mm`` at depths ``z`` (B, M) mm."""
@@ -390,48 +395,43 @@ class _Problem:
 
     def _nearest(self, uv: Tensor, rho: Tensor) -> _Nearest:
         """Each evidence point's closest point on its row's projected wire (M samples)."""
-        e = self.rows.points  # (B, N, 2)
-        m = uv.shape[1]
+        b, m = uv.shape[:2]
         # nearest centre-line sample, then the closest point on its two adjacent segments:
         # O(N·M) small arithmetic instead of a point-to-every-segment distance. The sample
-        # minimises |uv|²/2 − e·uv (|e − uv|² less a per-point constant): one fused product,
-        # in single precision (a near tie between two samples picks the segment between them
-        # either way)
+        # minimises |uv|²/2 − e·uv (|e − uv|² less a per-point constant): one product of
+        # (e, 1) and (−uv, |uv|²/2), in single precision (a near tie between two samples
+        # picks the segment between them either way)
         uv32 = (uv - self.rows.origin).float()
-        half = (0.5 * (uv32 * uv32).sum(-1))[:, None, :]
-        k0 = _argmin_last(torch.baddbmm(half, self.points32, uv32.transpose(1, 2), alpha=-1.0))
+        q = torch.cat([-uv32, 0.5 * (uv32 * uv32).sum(-1, keepdim=True)], -1)
+        k0 = _argmin_last(torch.bmm(self.points32, q.transpose(1, 2)))
         seg = torch.stack([k0 - 1, k0], -1).clamp(0, m - 2)  # (B, N, 2) candidate segments
-        # x and y apart: sums over an axis of two cost more than the arithmetic
-        ux, uy = uv[..., 0], uv[..., 1]
-        flat = seg.reshape(len(seg), -1)
-        ax, ay = (torch.gather(c, 1, flat).reshape(seg.shape) for c in (ux, uy))
-        bx, by = (torch.gather(c, 1, flat + 1).reshape(seg.shape) for c in (ux, uy))
-        abx, aby = bx - ax, by - ay
-        apx, apy = e[..., 0:1] - ax, e[..., 1:2] - ay
-        tau = ((apx * abx + apy * aby) / (abx * abx + aby * aby).clamp(min=1e-12)).clamp(0.0, 1.0)
-        dx, dy = apx - tau * abx, apy - tau * aby
-        d2 = dx * dx + dy * dy  # (B, N, 2)
+        # the samples' x, y and radius by component, (3, B·M), looked up at both candidates'
+        # ends: (3, B, N, 2) blocks, contiguous per component
+        table = torch.cat([uv.permute(2, 0, 1), rho[None]]).reshape(3, b * m)
+        at = (seg + torch.arange(b, device=uv.device)[:, None, None] * m).reshape(-1)
+        a, c = (torch.gather(table, 1, i.expand(3, -1)).view(3, *seg.shape) for i in (at, at + 1))
+        ab = c[:2] - a[:2]
+        ap = self.points_xy - a[:2]
+        dot, len2 = ap[0] * ab[0] + ap[1] * ab[1], ab[0] * ab[0] + ab[1] * ab[1]
+        tau = (dot / len2.clamp(min=1e-12)).clamp(0.0, 1.0)  # (B, N, 2)
+        d = ap - tau * ab  # (2, B, N, 2): e − the closest point
+        d2 = d[0] * d[0] + d[1] * d[1]
         second = d2[..., 1] < d2[..., 0]  # the first of equals, as argmin
 
         def pick(x: Tensor) -> Tensor:
             return torch.where(second, x[..., 1], x[..., 0])
 
         d_line = torch.sqrt(pick(d2))
-        k = pick(seg)  # (B, N) chosen segment
-        tk = pick(tau)[..., None]  # (B, N, 1)
-        rho_c = (1 - tk[..., 0]) * torch.gather(rho, 1, k) + tk[..., 0] * torch.gather(
-            rho, 1, k + 1
-        )
+        tk = pick(tau)  # (B, N) where on the chosen segment
+        rho_c = pick(a[2] + tau * (c[2] - a[2]))
         # zero inside the tube, and for padding
         d_rev = (d_line - rho_c).clamp(min=0.0) * self.rows.valid
-        dv = torch.stack([pick(dx), pick(dy)], -1)  # e − c, (B, N, 2)
-        sv = torch.stack([pick(abx), pick(aby)], -1)
-        return _Nearest(d_rev, d_line, dv, sv, k, tk)
+        return _Nearest(d_rev, d_line, pick(d), pick(ab), pick(seg), tk)
 
     def _sides(self, uv: Tensor, rho: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The distance transform at the samples (3, B, M), the signed outline distance on the
-        tube's two sides (3, B, 2M) (values and x, y gradients), the sides' normals (B, M, 2)
-        and which side samples count (B, 2M)."""
+        tube's two sides (3, B, 2M) (values and x, y gradients), the sides' normals by
+        component (2, B, M) and which side samples count (B, 2M)."""
         # the tube's two sides: ±rho along the projected centre line's normal
         tangent = _gradient(uv)  # (B, M, 2), px per sample
         t_len = torch.linalg.vector_norm(tangent, dim=-1, keepdim=True)
@@ -446,7 +446,7 @@ class _Problem:
         # a side is defined where the centre line runs across the view (not where it turns
         # back towards the camera) and the wire is wider than a pixel
         use = (t_len[..., 0] > 0.25) & (rho > 0.5) & self.s.tube
-        return fwd, side, normal, torch.cat([use, use], 1)
+        return fwd, side, normal.permute(2, 0, 1), torch.cat([use, use], 1)
 
     def _bilinear(self, plane: Tensor, uv: Tensor) -> Tensor:
         """Maps ``plane`` (Q,) (0: distance, 1: signed outline distance) of each row's ROI and
@@ -498,13 +498,14 @@ class _Problem:
         rho_s = torch.where(use2, rho_s, 0.0)
         cost = (rho_r * rows.valid).sum(-1) / rows.real + s.forward_weight * rho_f.mean(-1)
         cost = cost + s.outline_weight * rho_s.sum(-1) / (2 * m)
-        Jp = self.jac_points(X, rx)  # (B, M, 2, 6)
+        Jp = self.jac_points(X, rx)  # (2, 6, B, M)
         J_rev = _reverse_jacobian(near, Jp, drho)
         # forward: r = dist(uv); dr/dp = ∇dist · d(uv)/dp
-        J_fwd = torch.einsum("kbm,bmkp->bmp", fwd[1:], Jp)
+        J_fwd = fwd[1] * Jp[0] + fwd[2] * Jp[1]  # (6, B, M)
         # sides: r = sdf(uv ± rho·n); the normal's own turn with the pose is left out
-        dn = normal[..., None] * drho[..., None, :]
-        J_side = torch.einsum("kbm,bmkp->bmp", side[1:], torch.cat([Jp + dn, Jp - dn], 1))
+        dn = normal[:, None] * drho  # (2, 6, B, M)
+        on_sides = torch.cat([Jp + dn, Jp - dn], -1)
+        J_side = side[1] * on_sides[0] + side[2] * on_sides[1]  # (6, B, 2M)
         w_side = s.outline_weight * torch.where(use2, w_s, 0.0) / (2 * m)
         w_rev = w_r * rows.valid / rows.real[:, None]
         terms = [
@@ -512,9 +513,9 @@ class _Problem:
             (d_fwd, s.forward_weight * w_f / m, J_fwd),
             (d_side, w_side, J_side),
         ]
-        H, g = normal_equations(*terms[0])
+        H, g = normal_equations(*terms[0], by_component=True)
         for term in terms[1:]:
-            H_k, g_k = normal_equations(*term)
+            H_k, g_k = normal_equations(*term, by_component=True)
             H, g = H + H_k, g + g_k
         if self.points is not None:
             P, ok, count = self.points
@@ -540,33 +541,47 @@ class _Nearest(NamedTuple):
 
     d_rev: Tensor  # (B, N) distance to the tube, px (0 inside, and for padding)
     d_line: Tensor  # (B, N) distance to the centre line, px
-    dv: Tensor  # (B, N, 2) point minus its closest centre-line point
-    sv: Tensor  # (B, N, 2) the chosen segment's direction
+    dv: Tensor  # (2, B, N) point minus its closest centre-line point, by component
+    sv: Tensor  # (2, B, N) the chosen segment's direction, by component
     k: Tensor  # (B, N) the chosen segment
-    tk: Tensor  # (B, N, 1) where on it
+    tk: Tensor  # (B, N) where on it
 
 
 def _reverse_jacobian(near: _Nearest, Jp: Tensor, drho: Tensor) -> Tensor:  # noqa: N803
-    """d(reverse residual)/d(ω, δt) (B, N, 6): r = û·(e − c) − rho_c with c the closest point
-    (moving with the pose) and û the segment normal towards e, or the direction from c where c
-    is an end of the arc."""
-    k, tk, dv, sv = near.k, near.tk, near.dv, near.sv
-    b, m = drho.shape[:2]
-    # a row per sample: its pixel's derivatives and its radius's (B·M, 18), so that a point's
-    # two samples are two row lookups (a gather of single elements costs several times more)
-    table = torch.cat([Jp.reshape(b, m, 12), drho], -1).reshape(b * m, 18)
+    """d(reverse residual)/d(ω, δt) (6, B, N) from the samples' pixel derivatives ``Jp``
+    (2, 6, B, M) and radius derivatives ``drho`` (6, B, M): r = û·(e − c) − rho_c with c the
+    closest point (moving with the pose) and û the segment normal towards e, or the direction
+    from c where c is an end of the arc."""
+    k, tk, (dx, dy), (sx, sy) = near.k, near.tk, near.dv, near.sv
+    b, m = drho.shape[1:]
+    # a column per sample: its pixel's and its radius's derivatives (18, B·M), so that a
+    # point's two samples are two column lookups (a gather: index_select along columns is
+    # several times slower)
+    table = torch.cat([Jp.reshape(12, b * m), drho.reshape(6, b * m)])
     at = (k + torch.arange(b, device=k.device)[:, None] * m).reshape(-1)
-    lo, hi = (table.index_select(0, i).reshape(*k.shape, 18) for i in (at, at + 1))
-    Jc = (1 - tk) * lo + tk * hi  # (B, N, 18): c's pixel (u, v) and radius derivatives
-    seg_n = torch.stack([-sv[..., 1], sv[..., 0]], -1)
-    seg_n = seg_n / torch.linalg.vector_norm(seg_n, dim=-1, keepdim=True).clamp(min=1e-12)
-    away = (seg_n[..., :1] * dv[..., :1] + seg_n[..., 1:] * dv[..., 1:]) < 0  # a sum of two
-    seg_n = torch.where(away, -seg_n, seg_n)
+    lo, hi = (torch.gather(table, 1, i.expand(18, -1)).view(18, *k.shape) for i in (at, at + 1))
+    length = torch.sqrt(sx * sx + sy * sy).clamp(min=1e-12)
+    nx, ny = -sy / length, sx / length
+    toward = torch.where(nx * dx + ny * dy < 0, -1.0, 1.0)
     interior = (tk > 0) & (tk < 1)
-    unit = dv / near.d_line[..., None].clamp(min=1e-9)
-    u_hat = torch.where(interior | (near.d_line[..., None] < 1e-9), seg_n, unit)
-    J_rev = -(u_hat[..., :1] * Jc[..., :6] + u_hat[..., 1:] * Jc[..., 6:12]) - Jc[..., 12:]
-    return J_rev * (near.d_rev > 0)[..., None]
+    on_line = interior | (near.d_line < 1e-9)
+    inv = 1.0 / near.d_line.clamp(min=1e-9)
+    ux = torch.where(on_line, toward * nx, dx * inv)
+    uy = torch.where(on_line, toward * ny, dy * inv)
+    # −(û·(u, v)' + rho') of c = (1 − τ)·lo + τ·hi, zero inside the tube: the (B, N)
+    # coefficients first, then one multiply-add per block of the (6, B, N) result
+    outside = (near.d_rev > 0).to(tk.dtype)
+    w_lo, w_hi = (tk - 1.0) * outside, -tk * outside
+    J_rev = torch.mul(lo[12:], w_lo)
+    for block, w in (
+        (hi[12:], w_hi),
+        (lo[:6], w_lo * ux),
+        (lo[6:12], w_lo * uy),
+        (hi[:6], w_hi * ux),
+        (hi[6:12], w_hi * uy),
+    ):
+        J_rev.addcmul_(block, w)
+    return J_rev
 
 
 class Starts(NamedTuple):

@@ -35,11 +35,14 @@ def normal_equations(
     J: Tensor,  # noqa: N803
     *,
     by_row: bool = False,
+    by_component: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """JᵀWJ (B, 6, 6) and JᵀWr (B, 6) of residuals ``r`` (B, M), IRLS weights ``w`` (B, M)
-    and Jacobian ``J`` (B, M, 6), or (B, 6, M) with ``by_row`` (the faster layout: both
-    products then run along contiguous rows)."""
-    Jt = J if by_row else J.transpose(1, 2)
+    and Jacobian ``J`` (B, M, 6), or (B, 6, M) with ``by_row``, or (6, B, M) with
+    ``by_component`` (the faster layouts: both products then run along contiguous rows)."""
+    if by_component:
+        J = J.transpose(0, 1)
+    Jt = J if by_row or by_component else J.transpose(1, 2)
     JtW = Jt * w[:, None, :]
     return JtW @ Jt.transpose(1, 2), (JtW * r[:, None, :]).sum(-1)
 

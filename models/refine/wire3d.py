@@ -97,11 +97,12 @@ def nearest_arc_points(q: Tensor, arc: ArcModel) -> Tensor:
     return torch.stack([cx, cy, torch.zeros_like(cx)], -1)
 
 
-def _model_points(R: Tensor, t: Tensor, P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Camera points ``P`` (B, N, 3) in the model frames of poses ``R``, ``t``: R^T (P - t),
-    as its x, y, z (B, N) (one product laid out by axis: each is contiguous along N, where
-    a (B, N, 3) product's columns would be strided for all the arithmetic after it)."""
-    q = torch.bmm(R.transpose(1, 2), (P - t[:, None]).transpose(1, 2))  # (B, 3, N)
+def _model_points(R: Tensor, t: Tensor, P_axes: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Camera points ``P_axes`` (B, 3, N) (laid out by axis) in the model frames of poses
+    ``R``, ``t``: Rᵀ P − Rᵀ t, as its x, y, z (B, N): one product whose operands and result
+    are contiguous along N, as is all the arithmetic after it."""
+    Rt = R.transpose(1, 2)
+    q = torch.baddbmm(-(Rt @ t[..., None].to(Rt.dtype)), Rt, P_axes.to(Rt.dtype))  # (B, 3, N)
     return q[:, 0], q[:, 1], q[:, 2]
 
 
@@ -109,18 +110,25 @@ def wire_distances(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> Tensor:
     """Distances (B, N), mm, of camera points ``P`` (B, N, 3) to the wire's surface (the
     centre line's distance less ``wire_radius``; negative inside) at poses ``R`` (B, 3, 3),
     ``t`` (B, 3)."""
-    qx, qy, dz = _model_points(R, t, P)
+    qx, qy, dz = _model_points(R, t, P.transpose(1, 2))
     cx, cy = _nearest_xy(qx, qy, arc)
     dx, dy = qx - cx, qy - cy
     out: Tensor = torch.sqrt(dx * dx + dy * dy + dz * dz) - arc.wire_radius
     return out
 
 
-def wire_residuals_model(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> tuple[Tensor, Tensor]:
-    """:func:`wire_residuals` with the derivatives in the model frame, by row: (B, 6, N),
-    ``J_cam = blockdiag(R, R) · J_model`` per point (:func:`camera_normal_equations` turns
-    their normal equations to the camera's: a 6×6 product instead of one per point)."""
-    qx, qy, qz = _model_points(R, t, P)
+def wire_residuals_model(
+    R: Tensor,
+    t: Tensor,
+    P_axes: Tensor,
+    arc: ArcModel,
+) -> tuple[Tensor, Tensor]:
+    """:func:`wire_residuals` of camera points laid out by axis, ``P_axes`` (B, 3, N) (the
+    fits lay them out once: they stay fixed while the poses move), with the derivatives in
+    the model frame, by row: (B, 6, N), ``J_cam = blockdiag(R, R) · J_model`` per point
+    (:func:`camera_normal_equations` turns their normal equations to the camera's: a 6×6
+    product instead of one per point)."""
+    qx, qy, qz = _model_points(R, t, P_axes)
     cx, cy = _nearest_xy(qx, qy, arc)
     dx, dy = qx - cx, qy - cy
     dist = torch.sqrt(dx * dx + dy * dy + qz * qz)
@@ -148,7 +156,7 @@ def wire_residuals(R: Tensor, t: Tensor, P: Tensor, arc: ArcModel) -> tuple[Tens
     A point's residual moves with the centre line's nearest point c (camera frame): by
     ``(u × R c)·ω − u·δt`` with u the unit direction from c to the point (the nearest point's
     arc parameter is stationary, so its own change does not enter)."""
-    r, J = wire_residuals_model(R, t, P, arc)
+    r, J = wire_residuals_model(R, t, P.transpose(1, 2), arc)
     b, m = P.shape[:2]
     J_cam = (J.transpose(1, 2).reshape(b, 2 * m, 3) @ R.transpose(1, 2)).reshape(b, m, 6)
     return r, J_cam

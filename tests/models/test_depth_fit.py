@@ -99,7 +99,7 @@ def test_model_frame_derivatives_give_the_camera_frames_normal_equations():
     P = t[:, None] + torch.as_tensor(rng.normal(0, 8, (2, 50, 3)))
     w = torch.as_tensor(rng.uniform(0.1, 1.0, (2, 50)))
     r_cam, J_cam = wire_residuals(R, t, P, ARC)
-    r, J = wire_residuals_model(R, t, P, ARC)
+    r, J = wire_residuals_model(R, t, P.transpose(1, 2), ARC)  # by axis
     torch.testing.assert_close(r, r_cam)
     H, g = camera_normal_equations(*normal_equations(r, w, J, by_row=True), R)
     H_cam, g_cam = normal_equations(r_cam, w, J_cam)

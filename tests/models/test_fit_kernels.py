@@ -1,7 +1,7 @@
 """The needle fit's kernels against the plainer ones they replaced, on seeded random input:
 the maps' gradients taken where the fit reads them (against bilinear sampling of
 ``numpy.gradient`` maps), the outline distance from the mask's box (against the whole grid's
-transform), the reverse term's Jacobian by row lookups (against element gathers and an
+transform), the reverse term's Jacobian by component-row lookups (against element gathers and an
 einsum), the nearest-sample argmin, and the split of a fit over worker threads."""
 
 from __future__ import annotations
@@ -119,12 +119,15 @@ def _old_reverse_jacobian(near: _Nearest, Jp: torch.Tensor, drho: torch.Tensor) 
     return J_rev * (near.d_rev > 0)[..., None]
 
 
-def test_the_reverse_jacobian_by_row_lookups_is_the_gathered_one():
+def test_the_reverse_jacobian_by_column_lookups_is_the_gathered_one():
+    """The component-major kernel (gathers of whole component rows, the coefficients applied
+    by multiply-adds) against element gathers and an einsum in the point-major layout."""
     g = torch.Generator().manual_seed(5)
     b, n, m = 5, 70, 12
     tk = torch.rand(b, n, 1, generator=g, dtype=torch.float64)
     tk[:, :10] = torch.tensor([0.0, 1.0], dtype=torch.float64).repeat(5)[:, None]  # the ends
     d_line = torch.rand(b, n, generator=g, dtype=torch.float64) * 3
+    d_line[:, 10:12] = 0.0  # a point on the centre line
     near = _Nearest(
         d_rev=torch.where(torch.rand(b, n, generator=g) > 0.3, d_line, 0.0),
         d_line=d_line,
@@ -135,12 +138,13 @@ def test_the_reverse_jacobian_by_row_lookups_is_the_gathered_one():
     )
     Jp = torch.randn(b, m, 2, 6, generator=g, dtype=torch.float64)
     drho = torch.randn(b, m, 6, generator=g, dtype=torch.float64)
-    torch.testing.assert_close(
-        _reverse_jacobian(near, Jp, drho),
-        _old_reverse_jacobian(near, Jp, drho),
-        rtol=1e-13,
-        atol=1e-13,
+    by_component = near._replace(
+        dv=near.dv.permute(2, 0, 1), sv=near.sv.permute(2, 0, 1), tk=near.tk[..., 0]
     )
+    got = _reverse_jacobian(by_component, Jp.permute(2, 3, 0, 1), drho.permute(2, 0, 1))
+    want = _old_reverse_jacobian(near, Jp, drho)
+    assert got.shape == (6, b, n)
+    torch.testing.assert_close(got.permute(1, 2, 0), want, rtol=1e-13, atol=1e-13)
 
 
 def test_the_argmin_is_torchs_with_the_first_of_equals():
