@@ -21,7 +21,7 @@ nothing but the turned rotations, so the classifier judges each pose of step 1's
 (which hold the poses to the last bit) once, on its decoded image, and each margin's results
 follow from that one say (``--predict-each``: a whole predict per margin, as above; needed
 where the dataset's needle model is mapped to the estimator's, or a --predict-option sets
-``ends.*`` or the unheld RGB-D fit). The two agree up to roundoff (the classifier's on a
+``ends.*``). The two agree up to roundoff (the classifier's on a
 batch of other poses, predict's own from run to run: on the demo's data, margins 0 and 3,
 the same table and turned poses, rotations within 5e-10); a say within roundoff of a margin
 may fall the other way.
@@ -94,7 +94,7 @@ def end_says(data: Path, split: str, est: PoseEstimates, judge: EndJudge) -> np.
 
 def one_pass_refused(data: Path, split: str, options: list[str]) -> str | None:
     """Why the margins cannot follow from one pass of the classifier, or None."""
-    touched = [o for o in options if o.startswith("ends.") or "unheld" in o]
+    touched = [o for o in options if o.startswith("ends.")]
     if touched:
         return f"--predict-option {touched[0]} changes the end check"
     if dataset_mappings(BopDataset(data, split), load_estimator("gdrnet", {"device": "cpu"})):

@@ -186,7 +186,6 @@ class GdrNetEstimator:
         """Refinement and end check of needle poses: R, t mm; the BOP boxes ``bbox`` (n, 4) of
         re-cropped ROIs are set to the grown boxes in place."""
         R, t = poses
-        unheld = np.zeros(len(R), dtype=bool)
         if self.refine is not None:
             ref = self.refine(
                 batch.image,
@@ -199,10 +198,10 @@ class GdrNetEstimator:
                 depth=depth,
                 index=batch.roi_image,
             )
-            R, t, unheld = ref.R, ref.t, ref.unheld
+            R, t = ref.R, ref.t
             bbox[ref.grown] = ref.boxes[ref.grown] + np.array([0.5, 0.5, 0.0, 0.0])  # BOP
         if self.ends is not None:
-            R = self.ends(batch.image, batch.K, R, t, unheld, batch.roi_image)
+            R = self.ends(batch.image, batch.K, R, t, batch.roi_image)
         return R, t
 
 

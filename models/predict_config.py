@@ -109,13 +109,10 @@ class RecropSettings:
         growth: Re-crop when the union's longer side is at least this multiple of the box's
             (0: never).
         passes: Most re-crops of one ROI.
-        undo_unimproved: Fall back to the first box's fit where the re-cropped fit was
-            refused (not better than its start, or the out-of-domain guard).
     """
 
     growth: float = 1.1
     passes: int = 3
-    undo_unimproved: bool = False
 
     def __post_init__(self) -> None:
         if not (self.growth == 0 or self.growth >= 1):
@@ -143,10 +140,6 @@ class FitSettings:
         prior_deg: Sigma of the Gaussian prior on rotation around the pose head's pose, deg.
         prior_mm: Sigmas of the prior on translation along camera x, y, z, mm.
         prior_weight: The prior's weight against the mean image cost.
-        min_explained: Out-of-domain guard: the fitted wire must explain this share of the
-            mask's pixels (within ``explained_tol_px`` of its tube), else the pose head's pose
-            is kept (0: off).
-        explained_tol_px: The guard's tolerance, px.
         evidence_upsample: The masks' probabilities are resampled this many times finer
             (bilinear) before the threshold, so the outline falls between grid pixels.
         mask_threshold: Foreground threshold on the segmenter's probabilities.
@@ -166,8 +159,6 @@ class FitSettings:
     prior_deg: float = 8.0
     prior_mm: tuple[float, float, float] = (1.5, 1.5, 2.5)
     prior_weight: float = 0.05
-    min_explained: float = 0.0
-    explained_tol_px: float = 1.5
     evidence_upsample: int = 2
     mask_threshold: float = 0.5
     min_evidence: int = 12
@@ -209,17 +200,6 @@ class DepthSettings:
         max_points: Most points of a needle the fit uses, evenly strided in the mask's scan
             order (the fit to the points alone takes its own ``points.max_points`` of these).
         points: The fit to the points alone (one more start).
-        unheld: Also fit without the pose head's prior (each start's prior on itself) and
-            keep that fit where it puts ``unheld_share`` more of the points within
-            ``inlier_mm`` of its wire.
-        inlier_mm: A point this near the wire counts as on it, mm.
-        unheld_share: The lead in share of points on the wire the fit without the prior
-            needs.
-        lost_mm: With ``lost_share`` > 0: a pose head whose own pose puts fewer than
-            ``lost_share`` of the points within ``lost_mm`` of its wire is lost, and the fit
-            without its prior needs only ``unheld_share_lost`` more.
-        lost_share: See ``lost_mm`` (0: no pose head is judged lost).
-        unheld_share_lost: See ``lost_mm``.
     """
 
     mode: Literal["fit", "none"] = "fit"
@@ -227,12 +207,6 @@ class DepthSettings:
     scale_mm: float = 0.5
     max_points: int = 600
     points: PointsFitSettings = field(default_factory=PointsFitSettings)
-    unheld: bool = False
-    inlier_mm: float = 0.5
-    unheld_share: float = 0.15
-    lost_mm: float = 1.5
-    lost_share: float = 0.0
-    unheld_share_lost: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -268,18 +242,14 @@ class EndsSettings:
         margin: The logit margin the tail must win by (the pose head's own say on which end
             is the tip); null: the margin recorded with the classifier (its recipe's
             ``margin``, chosen on validation splits: 3 for the shipped one).
-        unheld_margin: The margin for poses the RGB-D fit took without the pose head's prior
-            (null: ``margin``).
     """
 
     classifier: str | None = "shipped"
     margin: float | None = None
-    unheld_margin: float | None = None
 
     def __post_init__(self) -> None:
-        for name, v in (("margin", self.margin), ("unheld_margin", self.unheld_margin)):
-            if v is not None and not abs(v) < float("inf"):
-                raise ValueError(f"ends.{name} must be a finite logit margin, got {v}")
+        if self.margin is not None and not abs(self.margin) < float("inf"):
+            raise ValueError(f"ends.margin must be a finite logit margin, got {self.margin}")
 
 
 @dataclass(frozen=True)

@@ -256,14 +256,6 @@ def _geman_mcclure(r: Tensor, c: float) -> tuple[Tensor, Tensor]:
     return 0.5 * c * c * q / (1.0 + q), 1.0 / (1.0 + q) ** 2
 
 
-def _on_segments(p: Tensor, a: Tensor, ab: Tensor) -> tuple[Tensor, Tensor]:
-    """Closest points of segments ``a + τ·ab`` (τ in [0, 1]) to points ``p`` (broadcast over
-    the leading axes): τ and ``p`` minus the closest point."""
-    ap = p - a
-    tau = ((ap * ab).sum(-1) / (ab**2).sum(-1).clamp(min=1e-12)).clamp(0.0, 1.0)
-    return tau, ap - tau[..., None] * ab
-
-
 def _argmin_last(x: Tensor) -> Tensor:
     """``x.argmin(-1)`` (the first of equal minima; int64), by numpy's vectorised argmin on
     the CPU: torch's reduction along a short last axis is several times slower."""
@@ -379,19 +371,6 @@ class _Problem:
         """Image radius (px) of wire radii ``wire_mm`` at depths ``z`` (B, M) mm."""
         K = self.rows.K
         return wire_mm * torch.sqrt(K[:, 0, 0] * K[:, 1, 1])[:, None] / z
-
-    def explained(self, R: Tensor, t: Tensor, tol_px: float) -> Tensor:
-        """Share (B,) of each row's evidence pixels within ``tol_px`` of the projected wire's
-        tube at the poses ``R`` (B, 3, 3), ``t`` (B, 3) mm."""
-        X, _, uv = self.project(R, t)
-        rho = self.radius_px(self.wire_mm, X[..., 2].clamp(min=1e-6))
-        a, ab = uv[:, :-1], uv[:, 1:] - uv[:, :-1]  # (B, M-1, 2) segments
-        tau, diff = _on_segments(self.rows.points[:, :, None], a[:, None], ab[:, None])
-        d = torch.linalg.vector_norm(diff, dim=-1)  # (B, N, M-1)
-        tube = (1 - tau) * rho[:, None, :-1] + tau * rho[:, None, 1:]
-        near = ((d - tube) <= tol_px).any(-1) & self.rows.valid
-        share: Tensor = near.sum(-1) / self.rows.real
-        return share
 
     def _nearest(self, uv: Tensor, rho: Tensor) -> _Nearest:
         """Each evidence point's closest point on its row's projected wire (M samples)."""
@@ -607,7 +586,6 @@ def refine_poses(
     settings: FitSettings | None = None,
     points: Sequence[F64 | None] | None = None,
     starts: Starts | None = None,
-    own_priors: bool = False,
     depth: DepthSettings | None = None,
     device: torch.device | str = "cpu",
 ) -> FitResults:
@@ -625,9 +603,6 @@ def refine_poses(
             (RGB-D: the depth term, weighted by ``depth``; with them the fit also starts from
             the tilt mirror).
         starts: More starting poses, e.g. fits to the points alone.
-        own_priors: For ROIs with points: centre each start's prior on itself instead of on
-            the first start (the network's pose), so that a start far from it is not held
-            back (for when the network's pose disagrees with the points).
         depth: the depth term's settings (defaults when None).
         device: where the fit runs (float64); on a CPU, on the calling thread with one
             intra-op thread (:func:`.lm.fit_threads`).
@@ -642,7 +617,6 @@ def refine_poses(
     t_init = np.asarray(t_init, float).reshape(n, 3)
     K = np.broadcast_to(np.asarray(K, float), (n, 3, 3))
     pts = list(points) if points is not None else [None] * n
-    has_points = np.array([p is not None for p in pts], bool)
     finite = np.isfinite(R_init).all(axis=(1, 2)) & np.isfinite(t_init).all(1)
     active = finite & np.array([e.size >= s.min_evidence for e in evidence], bool)
     out = FitResults(
@@ -664,7 +638,7 @@ def refine_poses(
     ev, p = [evidence[int(i)] for i in idx], [pts[i] for i in idx]
     poses = (R_init[idx], t_init[idx], K[idx])
     with fit_threads(dev):
-        res = _fit_batch(dev, arc, s, dep, ev, poses, p, sub, own_priors & has_points[idx])
+        res = _fit_batch(dev, arc, s, dep, ev, poses, p, sub)
     for field, value in zip(out, res, strict=True):
         field[idx] = value
     return out
@@ -679,7 +653,6 @@ def _fit_batch(
     poses: tuple[F64, F64, F64],
     points: list[F64 | None],
     starts: Starts,
-    own_priors: NDArray[np.bool_],
 ) -> tuple[F64, F64, F64, F64, NDArray[np.bool_]]:
     """:func:`refine_poses` on ROIs that all have evidence enough: (R, t, cost, start cost,
     improved) per ROI."""
@@ -688,8 +661,8 @@ def _fit_batch(
     mirror = np.array([s.mirror_start or p is not None for p in points], bool)
     roi, R_s, t_s, slot = _start_poses(R0, t0, arc, mirror, starts)
     # x = (ω, δt): R = exp(ω)·R_start, t = t_start + δt. The prior holds the directions the
-    # image does not fix (depth, tilt) near the network's pose (unless ``own_priors``)
-    held = ((slot > 0) & ~torch.as_tensor(own_priors, device=device)[roi])[:, None]
+    # image does not fix (depth, tilt) near the network's pose
+    held = (slot > 0)[:, None]
     x_prior = torch.cat([-log_so3(R_s @ R0[roi].transpose(1, 2)), t0[roi] - t_s], -1)
     x_prior = torch.where(held, x_prior, 0.0)
     with_points = [p if p is not None else np.zeros((0, 3)) for p in points]
@@ -719,12 +692,7 @@ def _fit_batch(
     ok &= torch.isfinite(cost[best]) & (cost[best] < start_cost)
     ok &= torch.isfinite(R_best).all(-1).all(-1) & torch.isfinite(t_best).all(-1)
     U, _, Vt = torch.linalg.svd(torch.where(ok[:, None, None], R_best, R0))
-    R_fit = U @ Vt
-    if s.min_explained > 0:
-        here = torch.arange(n, device=device)
-        guard = _Problem(arc, prob.ev, K, s, here).explained(R_fit, t_best, s.explained_tol_px)
-        ok &= guard >= s.min_explained
-    R_out = torch.where(ok[:, None, None], R_fit, R0)
+    R_out = torch.where(ok[:, None, None], U @ Vt, R0)
     t_out = torch.where(ok[:, None], t_best, t0)
     cost_out = torch.where(ok, cost[best], start_cost)
     return tuple(a.cpu().numpy() for a in (R_out, t_out, cost_out, start_cost, ok))  # type: ignore[return-value]
@@ -773,7 +741,6 @@ def refine_pose(
     settings: FitSettings | None = None,
     points: F64 | None = None,
     starts: tuple[tuple[F64, F64], ...] = (),
-    own_priors: bool = False,
     depth: DepthSettings | None = None,
 ) -> FitResult:
     """:func:`refine_poses` of one ROI: the pose ``R_init`` (3, 3), ``t_init`` (3,) mm fitted
@@ -793,7 +760,6 @@ def refine_pose(
         settings,
         pts,
         extra,
-        own_priors,
         depth,
     )
     return out.row(0)

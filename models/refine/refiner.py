@@ -27,14 +27,9 @@ from bopsurg.models.pose.roi import crop
 from bopsurg.models.predict_config import DepthSettings, FitSettings
 from bopsurg.models.refine.arc import ArcModel
 from bopsurg.models.refine.depth_fit import fit_depths
-from bopsurg.models.refine.fit import Evidence, FitResults, Starts, refine_poses
+from bopsurg.models.refine.fit import Evidence, Starts, refine_poses
 from bopsurg.models.refine.seghead import NeedleSegNet, SegConfig
-from bopsurg.models.refine.wire3d import (
-    depth_points,
-    stack_points,
-    strided_points,
-    wire_distances,
-)
+from bopsurg.models.refine.wire3d import depth_points, strided_points
 
 #: The fit's evidence from a segmenter: ``full`` (the default when the segmenter predicts the
 #: full, amodal mask: the arc may lie on the full mask, the pixels it must explain are the
@@ -184,9 +179,6 @@ class Refined(NamedTuple):
     t: np.ndarray
     #: (n,) bool: the fit changed the pose head's pose.
     changed: np.ndarray
-    #: (n,) bool: the pose comes from the RGB-D fit without the network's prior (the points
-    #: put the network's pose aside there, so its tip and tail carry no evidence either).
-    unheld: np.ndarray
 
 
 class NeedleRefiner:
@@ -266,16 +258,14 @@ class NeedleRefiner:
         t: np.ndarray,
         depth: np.ndarray | Sequence[np.ndarray | None] | None = None,
     ) -> Refined:
-        """Poses (R (n, 3, 3), t (n, 3) mm) fitted to ``masks`` from the pose head's, which
-        ROIs changed and which came from the fit without the network's prior (:class:`Refined`),
-        all ROIs at once on the refiner's device.
+        """Poses (R (n, 3, 3), t (n, 3) mm) fitted to ``masks`` from the pose head's and which
+        ROIs changed (:class:`Refined`), all ROIs at once on the refiner's device.
 
         ``K``: (3, 3) intrinsics, px, or (n, 3, 3) one per ROI. ``depth``: None (RGB), one depth
         image (H, W) mm (0: no reading) for all ROIs, or a sequence of n entries, each a depth
         image or None (RGB for that ROI). RGB-D: the visible mask's pixels back-projected are
-        the fit's points (its depth term), the arc fitted to those points alone
-        (:func:`.depth_fit.fit_depths`) is one more start, and with :attr:`DepthSettings.unheld`
-        the fit is also run without the network's prior (:meth:`_unheld`)."""
+        the fit's points (its depth term), and the arc fitted to those points alone
+        (:func:`.depth_fit.fit_depths`) is one more start."""
         n, s = len(R), self.settings
         Ks = np.broadcast_to(np.asarray(K, float), (n, 3, 3))
         depths = _per_roi(depth, n)
@@ -301,10 +291,7 @@ class NeedleRefiner:
         res = refine_poses(
             R, t, Ks, evidence, self.arc, s, fitted, starts, depth=self.depth, device=self.device
         )
-        unheld = np.zeros(n, dtype=bool)
-        if self.depth.unheld:
-            res, unheld = self._unheld(res, R, t, Ks, evidence, fitted, starts)
-        return Refined(res.R, res.t, res.improved, unheld)
+        return Refined(res.R, res.t, res.improved)
 
     def _evidence(self, masks: RoiMasks, i: int) -> tuple[Evidence, np.ndarray]:
         """ROI ``i``'s evidence for the fit, and its visible mask (on the evidence's grid)."""
@@ -316,62 +303,6 @@ class NeedleRefiner:
         if fg.ndim == 3:
             return Evidence.from_mask(fg[1], origin, step, explain=fg[0]), fg[0]
         return Evidence.from_mask(fg, origin, step), fg
-
-    def _unheld(
-        self,
-        res: FitResults,
-        R: np.ndarray,
-        t: np.ndarray,
-        K: np.ndarray,
-        evidence: list[Evidence],
-        points: list[np.ndarray | None],
-        starts: Starts,
-    ) -> tuple[FitResults, np.ndarray]:
-        """``res`` with the fit without the network's prior where it puts clearly more points
-        on its wire than the held RGB-D fit (:attr:`DepthSettings.unheld_share`; less where
-        the network's pose ``R``, ``t`` is lost: :attr:`DepthSettings.lost_share`), and
-        which ROIs took it. Only ROIs with points are tried, all at once."""
-        d = self.depth
-        unheld = np.zeros(len(R), dtype=bool)
-        has = np.flatnonzero([p is not None for p in points])
-        if not len(has):
-            return res, unheld
-
-        def on_wire(rows: np.ndarray, R_: np.ndarray, t_: np.ndarray, tol: float) -> np.ndarray:
-            """Share of the points of ROIs ``rows`` within ``tol`` mm of the poses' wires."""
-            P, real = stack_points([points[i] for i in rows], self.device)
-            R_t, t_t = (torch.as_tensor(a, device=self.device) for a in (R_, t_))
-            near = wire_distances(R_t, t_t, P, self.arc).abs() <= tol
-            return np.asarray(((near & real).sum(-1) / real.sum(-1)).cpu().numpy(), float)
-
-        lost = (d.lost_share > 0) & (on_wire(has, R[has], t[has], d.lost_mm) < d.lost_share)
-        lead = np.where(lost, d.unheld_share_lost, d.unheld_share)
-        need = on_wire(has, res.R[has], res.t[has], d.inlier_mm) + lead
-        tried = need <= 1.0  # else no fit can put that many more on its wire
-        rows, need = has[tried], need[tried]
-        if not len(rows):
-            return res, unheld
-        pick = np.isin(starts.roi, rows)
-        sub = Starts(starts.R[pick], starts.t[pick], np.searchsorted(rows, starts.roi[pick]))
-        free = refine_poses(
-            R[rows],
-            t[rows],
-            K[rows],
-            [evidence[i] for i in rows],
-            self.arc,
-            self.settings,
-            [points[i] for i in rows],
-            sub,
-            own_priors=True,
-            depth=d,
-            device=self.device,
-        )
-        take = free.improved & (on_wire(rows, free.R, free.t, d.inlier_mm) >= need)
-        out = FitResults(*(a.copy() for a in res))
-        for field, value in zip(out, free, strict=True):
-            field[rows[take]] = value[take]
-        unheld[rows[take]] = True
-        return out, unheld
 
     def __call__(
         self,

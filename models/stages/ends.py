@@ -15,22 +15,21 @@ from bopsurg.models.refine.ends import EndJudge, load_judge
 
 
 class EndStage:
-    """The end classifier and its margins.
+    """The end classifier and its margin.
 
     Args:
-        judge: The loaded classifier (:class:`EndJudge`).
-        settings: The margins.
+        judge: The loaded classifier (:class:`EndJudge`), with its margin.
     """
 
-    def __init__(self, judge: EndJudge, settings: EndsSettings) -> None:
-        self.judge, self.settings = judge, settings
+    def __init__(self, judge: EndJudge) -> None:
+        self.judge = judge
 
     @classmethod
     def load(cls, path: str | Path, settings: EndsSettings, device: torch.device) -> EndStage:
         """The stage on the ``needle_ends`` checkpoint ``path``."""
         judge = load_judge(path, device, settings.margin)
         for_inference(judge.net, device)
-        return cls(judge, settings)
+        return cls(judge)
 
     def __call__(
         self,
@@ -38,7 +37,6 @@ class EndStage:
         K: np.ndarray,
         R: np.ndarray,
         t: np.ndarray,
-        unheld: np.ndarray,
         index: np.ndarray | None = None,
     ) -> np.ndarray:
         """The rotations (n, 3, 3), turned end for end where the classifier says so; the
@@ -48,15 +46,10 @@ class EndStage:
             image: (B, 3, H, W) float RGB in [0, 1].
             K: (3, 3) intrinsics, px, or (n, 3, 3) one per pose.
             R: (n, 3, 3) rotations; t: (n, 3) translations, mm.
-            unheld: (n,) bool: poses the RGB-D fit took without the pose head's prior (judged
-                at :attr:`EndsSettings.unheld_margin` when that is set).
             index: (n,) the image of each pose (None: all in image 0).
         """
-        s = self.settings
-        margin = np.full(len(R), self.judge.margin)  # the setting's, else the recorded one
-        if s.unheld_margin is not None:
-            margin = np.where(unheld, s.unheld_margin, margin)
-        R_out: np.ndarray = self.judge(image, K, R, t, margin, index)[0]
+        # the judge's margin: ``ends.margin``, else the one recorded with the classifier
+        R_out: np.ndarray = self.judge(image, K, R, t, index=index)[0]
         return R_out
 
     def report(self) -> str:

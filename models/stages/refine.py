@@ -40,25 +40,21 @@ class Refinement(NamedTuple):
         t: (n, 3) translations, mm.
         boxes: (n, 4) the boxes the poses come from (x, y, w, h), pixel-centre px.
         grown: (n,) bool: the box grew to the needle's visible mask (a re-crop).
-        unheld: (n,) bool: the RGB-D fit without the pose head's prior was kept.
     """
 
     R: np.ndarray
     t: np.ndarray
     boxes: np.ndarray
     grown: np.ndarray
-    unheld: np.ndarray
 
 
 @dataclass
 class RefineStats:
-    """Needle poses the fit changed or left as the pose head gave them, re-cropped ROIs, and
-    RGB-D fits kept without the pose head's prior."""
+    """Needle poses the fit changed or left as the pose head gave them, and re-cropped ROIs."""
 
     refined: int = 0
     kept: int = 0
     recropped: int = 0
-    unheld: int = 0
 
 
 def grown_boxes(
@@ -82,13 +78,6 @@ def grown_boxes(
     grow = np.isfinite(seen).all(axis=1)
     grow &= union[:, 2:].max(axis=1) >= min_growth * boxes[:, 2:].max(axis=1)
     return np.where(grow[:, None], union, boxes), grow
-
-
-def _depth_rows(depth: Depth, rows: np.ndarray) -> Depth:
-    """The depth of the ROIs ``rows`` (bool (n,)): one image stays one image."""
-    if depth is None or isinstance(depth, np.ndarray):
-        return depth
-    return [depth[i] for i in np.flatnonzero(rows).tolist()]
 
 
 class RefineStage:
@@ -138,7 +127,6 @@ class RefineStage:
         index = np.zeros(n, dtype=np.int64) if index is None else np.asarray(index)
         masks = self._observe(image, K, box_xywh, poses.R, poses.t, index)
         boxes = box_xywh.detach().cpu().double().numpy()
-        first = (poses.R, poses.t, masks, boxes)  # what an undone re-crop falls back to
         R, t = poses.R.copy(), poses.t.copy()  # the re-crops write into these
         grew = np.zeros(n, dtype=bool)
         todo = np.ones(n, dtype=bool)  # ROIs whose box may still grow
@@ -155,17 +143,8 @@ class RefineStage:
             masks = masks.replaced(redo, again)
             boxes, todo, grew = np.where(redo[:, None], grown, boxes), redo, grew | redo
         out = self.refiner.fit(masks, K, R, t, depth)
-        R, t, changed, unheld = out.R, out.t, out.changed, out.unheld
-        back = grew & ~changed if self.recrop.undo_unimproved else np.zeros_like(grew)
-        if back.any():  # the re-crop's fit was refused: the first box's fit instead
-            R0, t0, masks0, boxes0 = first
-            redo = self.refiner.fit(
-                masks0.subset(back), K[back], R0[back], t0[back], _depth_rows(depth, back)
-            )
-            R[back], t[back], unheld[back] = redo.R, redo.t, redo.unheld
-            changed[back], boxes[back], grew[back] = redo.changed, boxes0[back], False
-        self._count(changed, grew, unheld)
-        return Refinement(R, t, boxes, grew, unheld)
+        self._count(out.changed, grew)
+        return Refinement(out.R, out.t, boxes, grew)
 
     def _observe(
         self,
@@ -205,12 +184,11 @@ class RefineStage:
             np.concatenate([m.step for m in parts])[inv],
         )
 
-    def _count(self, changed: np.ndarray, grew: np.ndarray, unheld: np.ndarray) -> None:
+    def _count(self, changed: np.ndarray, grew: np.ndarray) -> None:
         st = self.stats
         st.refined += int(changed.sum())
         st.kept += int((~changed).sum())
         st.recropped += int(grew.sum())
-        st.unheld += int(unheld.sum())
 
     def report(self) -> str:
         """What the refinement did, for ``bopsurg predict``."""
@@ -218,6 +196,4 @@ class RefineStage:
         text = f"refinement improved {st.refined} needle poses, {st.kept} kept the network's"
         if self.recrop.growth > 0:
             text += f", {st.recropped} re-cropped to their whole mask"
-        if st.unheld:
-            text += f"; RGB-D fits without the head's prior: {st.unheld}"
         return text

@@ -8,7 +8,6 @@ captured with (every depth point: that fit had no cap on them)."""
 
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import numpy as np
@@ -118,23 +117,9 @@ ALL_POINTS = 10**9
 def variants() -> dict[str, tuple[FitSettings, DepthSettings, bool, bool]]:
     """Named (fit, depth settings, with depth, two mask planes) of the reference outputs."""
     fit, dep = FitSettings(), DepthSettings(max_points=ALL_POINTS)
-    unheld = DepthSettings(unheld=True, max_points=ALL_POINTS)
     return {
         "rgb": (fit, dep, False, False),
         "rgbd": (fit, dep, True, False),
         "rgb_full": (fit, dep, False, True),
         "rgbd_full": (fit, dep, True, True),
-        "guard_mirror_line": (
-            FitSettings(min_explained=0.95, mirror_start=True, tube=False, evidence_upsample=1),
-            dep,
-            False,
-            False,
-        ),
-        "unheld": (FitSettings(prior_weight=50.0), unheld, True, False),
-        "unheld_lost": (
-            FitSettings(prior_weight=50.0),
-            dataclasses.replace(unheld, unheld_share=1.5, lost_share=0.5),
-            True,
-            False,
-        ),
     }

@@ -299,23 +299,18 @@ def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
         load_judge(path, torch.device("cpu"))
 
 
-@pytest.mark.parametrize(("unheld", "unheld_margin", "turned"), [
-    (False, None, False), (True, None, False), (False, 0.0, False), (True, 0.0, True),
-])  # fmt: skip
-def test_the_end_stage_judges_unheld_poses_at_their_own_margin_when_set(
-    unheld, unheld_margin, turned
-):
-    """The margin is the pose head's say on which end is the tip; ``ends.unheld_margin``
-    (off by default) gives poses the RGB-D fit took without the head's prior another one."""
+@pytest.mark.parametrize(("margin", "turned"), [(10.0, False), (0.0, True)])
+def test_the_end_stage_turns_a_pose_whose_tail_wins_by_its_margin(margin, turned):
+    """The margin is the pose head's say on which end is the tip: a bright tail turns the
+    pose at margin 0, not at a margin above the classifier's say."""
     from bopsurg.models.stages.ends import EndStage
 
     cfg = EndConfig()
-    settings = EndsSettings(margin=10.0, unheld_margin=unheld_margin)  # 10: above its say
-    stage = EndStage(EndJudge(_Bright(cfg), cfg, ARC, margin=settings.margin), settings)
+    stage = EndStage(EndJudge(_Bright(cfg), cfg, ARC, margin=margin))
     R, t = np.eye(3)[None], np.array([[0.0, 0.0, 70.0]])
     wrong = swapped(R, ARC)
     image = _frame_with_a_bright_tip(R[0], t[0])
-    out = stage(image, K, wrong, t, np.array([unheld]))
+    out = stage(image, K, wrong, t)
     np.testing.assert_allclose(out[0], R[0] if turned else wrong[0], atol=1e-12)
     assert stage.judge.stats.swapped == int(turned)
     assert ("turned 1 of 1" in stage.report()) == turned

@@ -37,7 +37,7 @@ def test_dotted_options_reach_nested_settings_with_yaml_values():
         "head.zoom=[1]",
         "ends.classifier=none",
         "detect.input_hw=[384, 512]",
-        "refine.recrop.undo_unimproved=true",
+        "refine.recrop.passes=2",
         "refine.fit.prior_mm=[1, 2, 3]",
         "refine.depth.mode=none",
     )
@@ -47,7 +47,7 @@ def test_dotted_options_reach_nested_settings_with_yaml_values():
     assert cfg.head.zoom == (1.0,)
     assert cfg.ends.classifier is None
     assert cfg.detect.input_hw == (384, 512)
-    assert cfg.refine.recrop.undo_unimproved is True
+    assert cfg.refine.recrop.passes == 2
     assert cfg.refine.fit.prior_mm == (1.0, 2.0, 3.0)
     # untouched siblings keep their defaults
     assert cfg.refine.depth.scale_mm == PredictConfig().refine.depth.scale_mm
@@ -66,6 +66,12 @@ def test_dotted_options_reach_nested_settings_with_yaml_values():
         ("ends.margin=.nan", r"ends\.margin must be a finite"),
         ("detect.input_hw=[100, 512]", r"multiples of 32"),
         ("detect.conf=true", r"detect\.conf"),
+        # rules found on the AMBF frames, removed: a file that still sets one is refused
+        ("refine.depth.unheld=true", r"^gdrnet: refine\.depth\.unheld: unknown setting"),
+        ("refine.depth.lost_share=0.05", r"^gdrnet: refine\.depth\.lost_share: unknown"),
+        ("ends.unheld_margin=0", r"^gdrnet: ends\.unheld_margin: unknown setting"),
+        ("refine.fit.min_explained=0.7", r"^gdrnet: refine\.fit\.min_explained: unknown"),
+        ("refine.recrop.undo_unimproved=true", r"refine\.recrop\.undo_unimproved: unknown"),
     ],
 )
 def test_bad_settings_are_one_line_errors_naming_the_key(pair, message):
@@ -77,7 +83,7 @@ def test_bad_settings_are_one_line_errors_naming_the_key(pair, message):
 
 
 def test_the_resolved_config_is_a_config_file_that_reproduces_it(tmp_path):
-    cfg = _config("refine.depth.weight=4", "head.zoom=[0.9, 1.1]", "ends.unheld_margin=0")
+    cfg = _config("refine.depth.weight=4", "head.zoom=[0.9, 1.1]", "ends.margin=0")
     path = tmp_path / "run.config.yaml"
     path.write_text(to_yaml(cfg))
     again = from_mapping(PredictConfig, read_mapping(path))
