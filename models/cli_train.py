@@ -38,7 +38,8 @@ from shuffles of the training set (an epoch is the unit of validation and resumi
 
 Writes into --out: MODEL.pt + MODEL.json (the exported EMA weights, float16, and their
 config, loaded with weights_only=True), log.jsonl (losses and validation per epoch),
-train_state.pt/.json (to resume). Rerun the same command after an interruption: it
+validated/eNNN/MODEL.pt + .json (the export after each validated epoch, to choose the epoch
+on validation splits afterwards), train_state.pt/.json (to resume). Rerun the same command after an interruption: it
 resumes after the last finished epoch and ends with the same weights. Validation: one
 scene in 10 of --split, drawn with a fixed seed, is held out (or --val-split). Presets:
 detector cpu (default; width 0.25, depth 0.33, input 320x256 = 640x480 letterboxed at 1/2),

@@ -13,6 +13,8 @@ A training run lives in one folder::
     OUT/train_state.json  the run's settings; a resume with other settings is refused
     OUT/log.jsonl         one JSON line per epoch: losses, validation, lr, seconds
     OUT/NAME.pt + .json   the exported model (EMA weights), rewritten after every epoch
+    OUT/validated/eNNN/   a copy of the export after each validated epoch NNN (1-based), so
+                          that the epoch can be chosen afterwards on the validation splits
 
 Randomness: every epoch draws from ``torch.Generator().manual_seed(seed * 1000 + epoch)``
 (the shuffle first, then the batch augmentations in step order), and per-sample augmentations
@@ -30,6 +32,7 @@ import json
 import logging
 import math
 import platform
+import shutil
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -152,9 +155,11 @@ class RunFolder:
         self.state_path = self.out / "train_state.pt"
         self.settings_path = self.out / "train_state.json"
         self.log_path = self.out / "log.jsonl"
+        self.validated = self.out / "validated"  # a copy of each validated epoch's export
         if restart:
             for p in (self.state_path, self.settings_path, self.log_path):
                 p.unlink(missing_ok=True)
+            shutil.rmtree(self.validated, ignore_errors=True)
 
     def load_state(self) -> dict[str, Any] | None:
         """The saved training state, or None for a fresh run.
@@ -462,8 +467,9 @@ def fit(
 
     Per step: the learning rate of :func:`flat_cosine_lr`, ``step``'s losses, backward,
     gradient norm clipped to 10, AdamW, EMA update. Per epoch: validation of the EMA network
-    after every ``val_every``-th and the last epoch, then the export, the training state
-    and the log line, so a run killed at any point resumes after its last finished epoch.
+    after every ``val_every``-th and the last epoch, then the export (and for a validated
+    epoch a copy of it in ``OUT/validated/eNNN/``), the training state and the log line, so a
+    run killed at any point resumes after its last finished epoch.
 
     Args:
         model: The network, on ``device``, freshly initialised (seeded by the caller).
@@ -576,17 +582,22 @@ def _end_epoch(
     record: dict[str, Any],
     device: torch.device,
 ) -> None:
-    """Export the EMA weights, then save the training state and the log line of the epoch."""
+    """Export the EMA weights (and keep a copy of a validated epoch's), then save the
+    training state and the log line of the epoch."""
     epoch = record["epoch"]
+    validation = {k: v for k, v in record.items() if k.startswith("val_")}
+    meta = {
+        **export.meta, "epoch": epoch + 1, "validation": validation,
+        **provenance(run.settings, p.timer.seconds, device),
+    }  # fmt: skip
+    state = p.ema.ema.state_dict()
     save_checkpoint(
-        export.path, p.ema.ema.state_dict(), kind=export.kind, config=export.config,
-        meta={
-            **export.meta, "epoch": epoch + 1,
-            "validation": {k: v for k, v in record.items() if k.startswith("val_")},
-            **provenance(run.settings, p.timer.seconds, device),
-        },
-        half=True,
-    )  # fmt: skip
+        export.path, state, kind=export.kind, config=export.config, meta=meta, half=True
+    )
+    if validation:  # before the state: a resume after this epoch finds the copy in place
+        kept = run.validated / f"e{epoch + 1:03d}" / export.path.name
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(kept, state, kind=export.kind, config=export.config, meta=meta, half=True)
     run.save_state(
         {
             "model": model.state_dict(), "ema": p.ema.state_dict(),

@@ -65,6 +65,22 @@ def test_fit_steps_validates_on_cadence_and_exports(tmp_path):
     assert info["meta"]["epoch"] == 5
     assert info["meta"]["validation"] == {"val_mse": log[-1]["val_mse"]}
     assert load_tensors(path)["weight"].dtype == torch.float16  # EMA weights, half
+    # a copy of each validated epoch's export, to choose the epoch on validation afterwards
+    kept = sorted(p.name for p in (tmp_path / "validated").iterdir())
+    assert kept == ["e002", "e004", "e005"]
+    e2 = json.loads((tmp_path / "validated" / "e002" / "toy.json").read_text())
+    assert e2["meta"]["epoch"] == 2
+    assert e2["meta"]["validation"] == {"val_mse": log[1]["val_mse"]}
+    for k, v in load_tensors(tmp_path / "validated" / "e005" / "toy.pt").items():
+        torch.testing.assert_close(v, load_tensors(path)[k], rtol=0, atol=0)  # the last: the export
+
+
+def test_a_restart_drops_the_previous_runs_validated_copies(tmp_path):
+    _run(tmp_path, 2, val_every=1)
+    assert (tmp_path / "validated" / "e002").is_dir()
+    settings = training.RunSettings("toy", "none", "train", "test", 3, {"lr": 0.1})
+    training.open_run(tmp_path, settings, restart=True)
+    assert not (tmp_path / "validated").exists()
 
 
 def test_a_resumed_fit_replays_the_same_batches_and_ends_with_the_same_weights(tmp_path):
