@@ -39,9 +39,10 @@ from shuffles of the training set (an epoch is the unit of validation and resumi
 Writes into --out: MODEL.pt + MODEL.json (the exported EMA weights, float16, and their
 config, loaded with weights_only=True), log.jsonl (losses and validation per epoch),
 validated/eNNN/MODEL.pt + .json (the export after each validated epoch, to choose the epoch
-on validation splits afterwards), train_state.pt/.json (to resume). Rerun the same command after an interruption: it
-resumes after the last finished epoch and ends with the same weights. Validation: one
-scene in 10 of --split, drawn with a fixed seed, is held out (or --val-split). Presets:
+on validation splits afterwards), train_state.pt/.json (to resume). Rerun the same command
+after an interruption: it resumes after the last finished epoch and ends with the same
+weights. Validation: one scene in 10 of --split, drawn with a fixed seed, is held out (or
+--val-split). Presets:
 detector cpu (default; width 0.25, depth 0.33, input 320x256 = 640x480 letterboxed at 1/2),
 tiny, s, test; pose cpu (ResNet-18 layout at half width, ROI 128 -> 32x32 maps, 32
 regions), paper (ResNet-34 layout, ROI 256, 64 regions), test; seg cpu (visible mask,
