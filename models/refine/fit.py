@@ -541,12 +541,13 @@ def _reverse_jacobian(near: _Nearest, Jp: Tensor, drho: Tensor) -> Tensor:  # no
     lo, hi = (torch.gather(table, 1, i.expand(18, -1)).view(18, *k.shape) for i in (at, at + 1))
     length = torch.sqrt(sx * sx + sy * sy).clamp(min=1e-12)
     nx, ny = -sy / length, sx / length
-    toward = torch.where(nx * dx + ny * dy < 0, -1.0, 1.0)
+    away = nx * dx + ny * dy < 0  # the segment normal turned towards the point
+    nx, ny = torch.where(away, -nx, nx), torch.where(away, -ny, ny)
     interior = (tk > 0) & (tk < 1)
     on_line = interior | (near.d_line < 1e-9)
     inv = 1.0 / near.d_line.clamp(min=1e-9)
-    ux = torch.where(on_line, toward * nx, dx * inv)
-    uy = torch.where(on_line, toward * ny, dy * inv)
+    ux = torch.where(on_line, nx, dx * inv)
+    uy = torch.where(on_line, ny, dy * inv)
     # −(û·(u, v)' + rho') of c = (1 − τ)·lo + τ·hi, zero inside the tube: the (B, N)
     # coefficients first, then one multiply-add per block of the (6, B, N) result
     outside = (near.d_rev > 0).to(tk.dtype)
