@@ -11,7 +11,11 @@ re-crops' pose-head passes; ``refiner.fit`` holds the evidence and both fits. Ke
 default ``--threads 1``: with more, the refinement runs its parts on worker threads
 (``models/refine/workers.py``), whose time the calling thread's clock does not see.
 
-    python bench/bench_predict_stages.py /work/exp/s38/testsplit --images 48 --batch-size 8
+    python bench/bench_predict_stages.py TEST_SPLIT --images 48 --batch-size 8 \
+        [--predict-option KEY=VALUE ...]
+
+``--predict-option`` (repeatable) sets the estimator's options as ``bopsurg predict --option``
+does: the cost of a candidate setting, stage by stage.
 
 ``bench/bench_predict_speed.py`` times whole configurations against the networks alone.
 """
@@ -26,12 +30,15 @@ from typing import Any
 
 import torch
 from bench_metrics import machine
+from benchlib import add_predict_option
 
 from bopsurg import prediction
 from bopsurg.bop.dataset import BopDataset
+from bopsurg.cli.inputs import key_value
 from bopsurg.estimation import load_estimator
-from bopsurg.models.refine import refiner
+from bopsurg.models.refine import fit, refiner
 from bopsurg.models.stages import detect, ends, head, refine
+from bopsurg.options import plugin_options
 
 #: label -> (object, attribute): the callables timed.
 STAGES: dict[str, tuple[Any, str]] = {
@@ -40,7 +47,7 @@ STAGES: dict[str, tuple[Any, str]] = {
     "refine stage": (refine.RefineStage, "__call__"),
     "  segmenter": (refine.RefineStage, "_observe"),
     "  refiner.fit": (refiner.NeedleRefiner, "fit"),
-    "    evidence": (refiner.NeedleRefiner, "_evidence"),
+    "    evidence": (fit.Evidence, "from_mask"),
     "    fit to the depth points": (refiner, "fit_depths"),
     "    RGB(-D) fit": (refiner, "refine_poses"),
     "end check": (ends.EndStage, "__call__"),
@@ -50,7 +57,7 @@ STAGES: dict[str, tuple[Any, str]] = {
 def instrument(spent: dict[str, float]) -> None:
     """Wrap each stage so that its thread CPU time adds up in ``spent`` (s)."""
     for label, (owner, name) in STAGES.items():
-        inner: Callable[..., Any] = getattr(owner, name)
+        inner: Callable[..., Any] = getattr(owner, name)  # a class method comes bound
 
         def timed(*a: Any, _f: Callable[..., Any] = inner, _k: str = label, **kw: Any) -> Any:
             start = time.thread_time()
@@ -59,15 +66,23 @@ def instrument(spent: dict[str, float]) -> None:
             finally:
                 spent[_k] = spent.get(_k, 0.0) + time.thread_time() - start
 
-        setattr(owner, name, functools.wraps(inner)(timed))
+        wrapped = functools.wraps(inner)(timed)
+        bound = isinstance(vars(owner).get(name), classmethod) if isinstance(owner, type) else False
+        setattr(owner, name, staticmethod(wrapped) if bound else wrapped)
 
 
 def run(
-    ds: BopDataset, rgbd: bool, images: int, batch: int, spent: dict[str, float]
+    ds: BopDataset,
+    rgbd: bool,
+    images: int,
+    batch: int,
+    spent: dict[str, float],
+    options: dict[str, Any],
 ) -> tuple[float, int]:
     """ms per image of the whole ``predict_batch`` over (at most) ``images`` images after one
-    warm-up batch, and how many were timed; ``spent`` holds the stages' seconds over them."""
-    est = load_estimator("gdrnet", {"device": "cpu"})
+    warm-up batch, and how many were timed; ``spent`` holds the stages' seconds over them.
+    ``options``: the estimator's, over its defaults."""
+    est = load_estimator("gdrnet", {**options, "device": "cpu"})
     maps = prediction.dataset_mappings(ds, est)
     mapped = prediction._Mapped(est, maps, rgbd)
     todo = prediction.image_targets(ds, mapped.obj_ids)
@@ -92,15 +107,19 @@ def main() -> None:
     ap.add_argument(
         "--threads", type=int, default=1, help="torch threads (default 1; see the docstring)"
     )
+    add_predict_option(ap, "refine.depth.points.iterations=8")
     args = ap.parse_args()
+    options = plugin_options(None, [key_value(o) for o in args.predict_option])
     torch.set_num_threads(args.threads)
     ds = BopDataset(args.dataset, args.split)
     spent: dict[str, float] = {}
     instrument(spent)
     print(f"machine: {machine()}; torch {torch.__version__}, {torch.get_num_threads()} threads")
     print(f"batch {args.batch_size}, {args.images} images after one warm-up batch, CPU time")
+    if args.predict_option:
+        print("options: " + " ".join(args.predict_option))
     for mode, rgbd in (("RGB", False), ("RGB-D", True)):
-        total, timed = run(ds, rgbd, args.images, args.batch_size, spent)
+        total, timed = run(ds, rgbd, args.images, args.batch_size, spent, options)
         print(f"{mode}: {total:.1f} ms/image over {timed} images")
         for label in STAGES:
             print(f"  {label:30s} {1000.0 * spent.get(label, 0.0) / timed:7.1f}")
