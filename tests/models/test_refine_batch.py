@@ -123,9 +123,10 @@ def test_a_batch_equals_its_rois_fitted_alone(the_scene):
 
 
 @pytest.mark.parametrize("name", ["rgb", "rgbd"])
-def test_a_fit_split_over_two_worker_threads_gives_the_poses_of_one(the_scene, name):
-    """With two torch threads the fits run as two groups of ROIs side by side
-    (:mod:`bopsurg.models.refine.workers`): the same poses and decisions as one thread."""
+def test_a_fit_under_two_torch_threads_gives_the_poses_of_one(the_scene, name):
+    """With two torch threads (the budget ``bopsurg predict`` gives) the fits still run on
+    the calling thread with one intra-op thread (:func:`bopsurg.models.refine.lm.fit_threads`):
+    the same poses and decisions as one thread, and the caller's thread count restored."""
     refiner, masks = _refiner(the_scene, name)
     depth = the_scene.depth if variants()[name][2] else None
     before = torch.get_num_threads()
