@@ -53,15 +53,10 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 
 
 def split(rows: np.ndarray, parts: int) -> list[np.ndarray]:
-    """``rows`` in at most ``parts`` consecutive, non-empty groups of about equal size."""
+    """``rows`` in at most ``parts`` consecutive, non-empty groups whose sizes differ by at
+    most one (the first ones the larger); one group, possibly empty, for no rows."""
     rows = np.asarray(rows)
-    parts = max(1, min(parts, len(rows)))
-    if parts == 1:
-        return [rows]
-    ends = np.arange(1, len(rows) + 1, dtype=float)
-    want = ends[-1] * np.arange(1, parts) / parts
-    cut = np.abs(ends[None, :] - want[:, None]).argmin(axis=1) + 1  # nearest share, each cut
-    return [g for g in np.split(rows, np.unique(np.clip(cut, 1, len(rows) - 1))) if len(g)]
+    return np.array_split(rows, max(1, min(parts, len(rows))))
 
 
 def run(fn: Callable[[T], R], groups: Sequence[T]) -> list[R]:

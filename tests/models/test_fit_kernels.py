@@ -160,7 +160,9 @@ def test_the_split_keeps_order_and_balances_size():
     np.testing.assert_array_equal(np.concatenate(groups), rows)
     assert [len(grp) for grp in groups] == [5, 5]
     assert len(workers.split(rows[:1], 4)) == 1
-    assert [len(grp) for grp in workers.split(rows, 3)] == [3, 4, 3]
+    assert [len(grp) for grp in workers.split(rows, 3)] == [4, 3, 3]
+    assert [len(grp) for grp in workers.split(rows[:2], 3)] == [1, 1]
+    assert [len(grp) for grp in workers.split(rows[:0], 2)] == [0]
 
 
 def test_workers_run_in_order_and_raise():
