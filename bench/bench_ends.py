@@ -52,9 +52,11 @@ from benchlib import (
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.images import load_rgb
 from bopsurg.bop.results import PoseEstimates, load_results, save_results
+from bopsurg.cli.inputs import key_value
 from bopsurg.estimation import load_estimator
 from bopsurg.models.inference import for_inference
 from bopsurg.models.refine.ends import TAIL, TIP, EndJudge, load_judge, swapped
+from bopsurg.options import plugin_options
 from bopsurg.prediction import dataset_mappings
 
 #: Estimate-row keys that pair the rows of two runs on the same boxes.
@@ -97,7 +99,16 @@ def one_pass_refused(data: Path, split: str, options: list[str]) -> str | None:
     touched = [o for o in options if o.startswith("ends.")]
     if touched:
         return f"--predict-option {touched[0]} changes the end check"
-    if dataset_mappings(BopDataset(data, split), load_estimator("gdrnet", {"device": "cpu"})):
+    # the estimator of the runs (its pose head says which model its poses refer to), without
+    # the stages that model does not depend on
+    light = {
+        "device": "cpu",
+        "detector": None,
+        "refine": {"segmenter": None},
+        "ends": {"classifier": None},
+    }
+    est = load_estimator("gdrnet", plugin_options(None, map(key_value, options), light))
+    if dataset_mappings(BopDataset(data, split), est):
         return "the dataset's needle model is mapped to the estimator's"
     return None
 
