@@ -30,9 +30,8 @@ from typing import Any
 
 import torch
 from bench_metrics import machine
-from benchlib import add_predict_option
+from benchlib import add_predict_option, decoded_images
 
-from bopsurg import prediction
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.cli.inputs import key_value
 from bopsurg.estimation import load_estimator
@@ -67,7 +66,7 @@ def instrument(spent: dict[str, float]) -> None:
                 spent[_k] = spent.get(_k, 0.0) + time.thread_time() - start
 
         wrapped = functools.wraps(inner)(timed)
-        bound = isinstance(vars(owner).get(name), classmethod) if isinstance(owner, type) else False
+        bound = isinstance(vars(owner).get(name), classmethod)  # a module's names are plain
         setattr(owner, name, staticmethod(wrapped) if bound else wrapped)
 
 
@@ -83,12 +82,7 @@ def run(
     warm-up batch, and how many were timed; ``spent`` holds the stages' seconds over them.
     ``options``: the estimator's, over its defaults."""
     est = load_estimator("gdrnet", {**options, "device": "cpu"})
-    maps = prediction.dataset_mappings(ds, est)
-    mapped = prediction._Mapped(est, maps, rgbd)
-    todo = prediction.image_targets(ds, mapped.obj_ids)
-    keys = list(todo)[: batch + images]
-    div = prediction.depth_divisor(maps) if rgbd else None
-    decoded = [prediction._load_image(ds, k, todo[k], None, div) for k in keys]
+    mapped, decoded = decoded_images(ds, est, batch + images, rgbd)
     mapped.predict_batch(decoded[:batch])
     spent.clear()
     start = time.thread_time()

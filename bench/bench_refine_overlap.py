@@ -39,13 +39,13 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 from bench_metrics import machine
+from benchlib import decoded_images
 
 from bopsurg import prediction
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.estimation import ImageInput, load_estimator
 from bopsurg.models.refine import refiner as refine_mod
 from bopsurg.models.refine.depth_fit import fit_depths
-from bopsurg.models.refine.wire3d import depth_points, strided_points
 from bopsurg.models.stages.refine import RefineStage
 
 
@@ -125,12 +125,8 @@ def depth_work(call: FitCall) -> DepthWork:
     of every ROI, and the fit to the depth points (their points back-projected here)."""
     ref, n = call.refiner, len(call.R)
     depths = call.depth if isinstance(call.depth, list) else [call.depth] * n
-    points = []
-    for i in range(n):
-        ev, visible = ref._evidence(call.masks, i)
-        rows, cols = np.nonzero(visible)
-        uv = ev.origin + ev.step * np.stack([cols, rows], 1)
-        points.append(strided_points(depth_points(uv, depths[i], call.K[i]), ref.depth.max_points))
+    grids = [ref._evidence(call.masks, i) for i in range(n)]
+    points = [ref.roi_points(*g, d, K) for g, d, K in zip(grids, depths, call.K, strict=True)]
 
     def evidence() -> Any:
         return [ref._evidence(call.masks, i) for i in range(n)]
@@ -155,13 +151,8 @@ def main() -> None:
     nets = load_estimator(
         "gdrnet", {"device": "cpu", "refine": {"segmenter": None}, "ends": {"classifier": None}}
     )
-    maps = prediction.dataset_mappings(ds, est)
-    mapped = prediction._Mapped(est, maps, True)
-    mapped_nets = prediction._Mapped(nets, maps, False)
-    todo = prediction.image_targets(ds, mapped.obj_ids)
-    keys = list(todo)[: args.batch_size + args.images]
-    div = prediction.depth_divisor(maps)
-    decoded = [prediction._load_image(ds, k, todo[k], None, div) for k in keys]
+    mapped, decoded = decoded_images(ds, est, args.batch_size + args.images, depth=True)
+    mapped_nets = prediction._Mapped(nets, mapped.mappings, False)
     b = args.batch_size
     batches = [decoded[i : i + b] for i in range(0, len(decoded), b)]
     mapped.predict_batch(batches[0])  # warm-up

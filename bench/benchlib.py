@@ -1,6 +1,7 @@
 """What the estimator benches share: running a bopsurg command in-process, predict + eval of a
 split, the arguments of a bench on a dataset split (``--predict-option`` among them), the
-needles the paper's table counts, and oracle boxes."""
+needles the paper's table counts, oracle boxes, and a split's images decoded for timing an
+estimator in-process."""
 
 from __future__ import annotations
 
@@ -14,9 +15,11 @@ from pathlib import Path
 
 import pandas as pd
 
+from bopsurg import prediction
 from bopsurg.bop.dataset import BopDataset
 from bopsurg.bop.detections import gt_detections, save_detections
 from bopsurg.cli.main import main as bopsurg
+from bopsurg.estimation import ImageInput, PoseEstimator
 
 #: RE above which a needle's tip and tail count as swapped, deg.
 FLIP_DEG = 90.0
@@ -109,3 +112,18 @@ def oracle_boxes(data: Path, split: str, path: Path) -> Path:
     dets = gt_detections(BopDataset(data, split))
     save_detections(path, dets, dict.fromkeys(dets, 0.0))
     return path
+
+
+def decoded_images(
+    ds: BopDataset, estimator: PoseEstimator, count: int, depth: bool
+) -> tuple[prediction._Mapped, list[ImageInput]]:
+    """The estimator as ``bopsurg predict`` runs it on ``ds`` (its poses mapped to the split's
+    models; depth images given with ``depth``), and the split's first ``count`` target images
+    decoded as predict gives them to it: what a bench times ``predict_batch`` on, decoding
+    excluded."""
+    maps = prediction.dataset_mappings(ds, estimator)
+    mapped = prediction._Mapped(estimator, maps, depth)
+    todo = prediction.image_targets(ds, mapped.obj_ids)
+    div = prediction.depth_divisor(maps) if depth else None
+    keys = list(todo)[:count]
+    return mapped, [prediction._load_image(ds, k, todo[k], None, div) for k in keys]

@@ -274,13 +274,9 @@ class NeedleRefiner:
         points: list[np.ndarray | None] = []
         for i in range(n):  # once per ROI: distance transforms, back-projection
             ev, visible = self._evidence(masks, i)
-            d, P = depths[i], None
-            if d is not None:
-                rows, cols = np.nonzero(visible)
-                uv = ev.origin + ev.step * np.stack([cols, rows], 1)
-                P = strided_points(depth_points(uv, d, Ks[i]), self.depth.max_points)
+            d = depths[i]
             evidence.append(ev)
-            points.append(P)
+            points.append(None if d is None else self.roi_points(ev, visible, d, Ks[i]))
         with_depth = np.array([p is not None for p in points], bool)
         has = np.flatnonzero(with_depth)
         alone = fit_depths(
@@ -292,6 +288,17 @@ class NeedleRefiner:
             R, t, Ks, evidence, self.arc, s, fitted, starts, depth=self.depth, device=self.device
         )
         return Refined(res.R, res.t, res.improved)
+
+    def roi_points(
+        self, ev: Evidence, visible: np.ndarray, depth: np.ndarray, K: np.ndarray
+    ) -> np.ndarray:
+        """The RGB-D fit's points of one ROI: its visible mask's pixels (on the evidence's
+        grid) back-projected with ``depth`` (H, W) mm and ``K`` (3, 3), at most
+        ``depth.max_points`` of them, evenly strided (N, 3) mm."""
+        rows, cols = np.nonzero(visible)
+        uv = ev.origin + ev.step * np.stack([cols, rows], 1)
+        points: np.ndarray = strided_points(depth_points(uv, depth, K), self.depth.max_points)
+        return points
 
     def _evidence(self, masks: RoiMasks, i: int) -> tuple[Evidence, np.ndarray]:
         """ROI ``i``'s evidence for the fit, and its visible mask (on the evidence's grid)."""
