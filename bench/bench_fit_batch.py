@@ -8,7 +8,11 @@ the median of ``--repeat`` runs; prints ms per batch and per needle, and the pro
 time per needle (on a shared machine the steadier of the two: it leaves out waiting for a
 core).
 
-    python bench/bench_fit_batch.py [--device cpu|cuda] [--repeat 5] [--threads 2]
+    python bench/bench_fit_batch.py [--device cpu|cuda] [--repeat 5] [--threads 2] [--profile]
+
+``--profile``: also how many torch operator calls one RGB-D fit of 8 needles makes and their
+mean CPU time (``torch.profiler``, every aten call counted, views included), with the ops that
+take most of it.
 
 Evidence preparation (cv2 distance transforms, back-projection: per ROI) is included: it is
 part of each call.
@@ -20,6 +24,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -65,6 +70,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--threads", type=int, default=torch.get_num_threads())
+    ap.add_argument("--profile", action="store_true", help="count an RGB-D fit's torch calls")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     sc = scene()
@@ -87,6 +93,22 @@ def main() -> None:
                 cpu.append(time.process_time() - c_start)
             ms, cpu_ms = 1e3 * float(np.median(times)), 1e3 * float(np.median(cpu))
             print(f"{mode:6s} {n:7d} {ms:9.1f} {ms / n:10.2f} {cpu_ms / n:14.2f}")
+    if args.profile:
+        profile_calls(refiner, masks, sc)
+
+
+def profile_calls(refiner: NeedleRefiner, masks: RoiMasks, sc: Any) -> None:
+    """Print the torch operator calls of one RGB-D fit of 8 needles and their CPU time."""
+    from torch.profiler import profile
+
+    m, R, t = batch(masks, sc.R0, sc.t0, 8)
+    with profile() as prof:
+        refiner.fit(m, K, R, t, sc.depth)
+    ops = prof.key_averages()
+    calls = sum(e.count for e in ops)
+    self_us = sum(e.self_cpu_time_total for e in ops)
+    print(f"RGB-D, 8 needles, one fit: {calls} torch calls, {self_us / calls:.1f} us each (mean)")
+    print(ops.table(sort_by="self_cpu_time_total", row_limit=8))
 
 
 if __name__ == "__main__":
